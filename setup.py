@@ -1,0 +1,37 @@
+from glob import glob
+import os
+
+from setuptools import find_packages, setup
+
+package_name = 'feeder_sim'
+
+ros = ['ros-jazzy-rclpy', 'ros-jazzy-common-interfaces', 'ros-jazzy-rmw-fastrtps-cpp']
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test', 'benchmarks']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+        (os.path.join('share', package_name, 'config'), glob('config/*.yaml')),
+    ],
+    python_requires='>=3.11',
+    install_requires=['setuptools', 'numpy>=1.26', 'scipy>=1.11', 'pyyaml>=6',
+                      'matplotlib>=3.8', 'mcap>=1.2', 'mcap-ros2-support>=0.5'],
+    extras_require={
+        'ros': ros,
+        'test': ros + ['pytest>=8', 'pytest-timeout>=2.3', 'hypothesis>=6.100', 'ruff>=0.6'],
+    },
+    zip_safe=True,
+    maintainer='feeder_sim maintainers',
+    maintainer_email='maintainers@feeder-sim.invalid',
+    description='2D rigid-body simulation of vibratory parts feeders with frictional impulses',
+    license='Apache-2.0',
+    tests_require=['pytest'],
+    entry_points={
+        'console_scripts': [
+            'feeder-sim = feeder_sim.cli:main',
+        ],
+    },
+)
