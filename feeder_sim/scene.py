@@ -1,0 +1,775 @@
+"""Scene files: YAML -> validated, frozen dataclasses.
+
+A scene describes one world (see docs/interfaces.md §1). Everything is checked before anything
+runs; the first problem raises :class:`SceneError`, whose message names the file, the key path
+(``bodies[2].polygon``) and what is expected. Units are SI (m, s, kg, rad) throughout.
+
+YAML is read with a safe loader that differs from ``yaml.safe_load`` in two ways, both aimed at
+hand-written files: floats follow YAML 1.2 (``1e-3`` is a number, not the text "1e-3"), and a key
+repeated in one mapping is an error instead of silently keeping the last value.
+
+Optional blocks (``solver``, ``vibration``) written with no content (``solver:`` followed by only
+comments) count as absent. ``track: null`` means "no track body".
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, fields
+import difflib
+import math
+from numbers import Real
+import os
+from pathlib import Path
+import re
+import sys
+from typing import Any
+
+import numpy as np
+import yaml
+
+from feeder_sim import geometry
+
+__all__ = [
+    'BODY_TYPES', 'METHODS', 'BodySpec', 'Scene', 'SceneError', 'SolverSpec', 'Vibration',
+    'load_scene', 'parse_scene', 'scene_dirs', 'scene_to_dict', 'shipped_scenes',
+]
+
+METHODS = ('event_driven', 'time_stepping', 'impulse_based')
+BODY_TYPES = ('static', 'kinematic', 'dynamic')
+DEFAULT_GRAVITY = (0.0, -9.81)
+MAX_FRICTION = 10.0
+
+
+class SceneError(ValueError):
+    """An invalid scene, with the offending key path and the file it came from.
+
+    ``path`` is like ``'bodies[2].polygon'`` ('' for the file as a whole), ``source`` the file name
+    (or ``'<dict>'``), ``message`` the bare explanation; ``line``/``column`` (1-based) are set for
+    YAML syntax errors.
+    """
+
+    def __init__(self, message: str, path: str = '', source: str = '<dict>',
+                 line: int | None = None, column: int | None = None):
+        self.message = message
+        self.path = path
+        self.source = source
+        self.line = line
+        self.column = column
+        super().__init__(': '.join(part for part in (source, path, message) if part))
+
+    def __reduce__(self):
+        return (SceneError, (self.message, self.path, self.source, self.line, self.column))
+
+
+class _Invalid(Exception):
+    """Raised by the checkers; parse_scene adds the source and turns it into a SceneError."""
+
+    def __init__(self, path: str, message: str):
+        super().__init__(path, message)
+        self.path = path
+        self.message = message
+
+
+# --------------------------------------------------------------------------------------------
+# Dataclasses
+
+
+def _frozen(value, shape: tuple) -> np.ndarray:
+    arr = np.array(value, dtype=float)
+    if shape and arr.shape != shape:
+        arr = arr.reshape(shape)
+    arr.flags.writeable = False
+    return arr
+
+
+def _equal(a, b) -> bool:
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return a is not None and b is not None and bool(np.array_equal(a, b))
+    if isinstance(a, tuple) and isinstance(b, tuple):
+        return len(a) == len(b) and all(_equal(x, y) for x, y in zip(a, b))
+    return a == b
+
+
+class _ArrayFieldsEq:
+    """Field-wise equality for dataclasses holding numpy arrays (which makes them unhashable)."""
+
+    def __eq__(self, other):
+        if type(other) is not type(self):
+            return NotImplemented
+        return all(_equal(getattr(self, f.name), getattr(other, f.name)) for f in fields(self))
+
+
+@dataclass(frozen=True)
+class Vibration:
+    """Prescribed displacement ``amplitude * sin(2 pi frequency t + phase)`` of a kinematic body.
+
+    ``amplitude`` in m (0-peak), ``frequency`` in Hz, ``angle`` (rad) is the direction of the
+    displacement measured from the body's own x axis, ``phase`` in rad.
+    """
+
+    amplitude: float
+    frequency: float
+    angle: float
+    phase: float = 0.0
+
+
+@dataclass(frozen=True)
+class SolverSpec:
+    """Integrator settings: ``time_step`` in s (the fixed step of time_stepping, the largest step
+    of event_driven), ``tolerance`` the event_driven integrator's relative tolerance."""
+
+    method: str = 'event_driven'
+    time_step: float = 1e-4
+    friction_impulse: bool = True
+    tolerance: float = 1e-9
+
+
+@dataclass(frozen=True, eq=False)
+class BodySpec(_ArrayFieldsEq):
+    """One body as written in the scene file, validated.
+
+    ``pieces``: convex CCW pieces (m) in the body frame, exactly where the file puts them (not
+    shifted to the centroid). ``outlines``: the shape as given, for drawing and for writing the
+    scene back: ``(polygon,)`` for ``polygon:`` input, the pieces as written for ``polygons:``.
+    ``pose`` = (x m, y m, theta rad) of the body frame in the world; ``velocity`` = (vx, vy m/s,
+    omega rad/s). Dynamic bodies have exactly one of ``mass`` (kg) / ``density`` (kg/m^2); other
+    bodies have neither. Arrays are read-only.
+    """
+
+    name: str
+    type: str
+    pieces: tuple[np.ndarray, ...]
+    outlines: tuple[np.ndarray, ...]
+    pose: np.ndarray
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    mass: float | None = None
+    density: float | None = None
+    mu_static: float = 0.0
+    mu_dynamic: float = 0.0
+    restitution: float = 0.0
+    vibration: Vibration | None = None
+
+    def __post_init__(self):
+        set_ = object.__setattr__
+        set_(self, 'pieces', tuple(_frozen(p, ()) for p in self.pieces))
+        set_(self, 'outlines', tuple(_frozen(p, ()) for p in self.outlines))
+        set_(self, 'pose', _frozen(self.pose, (3,)))
+        set_(self, 'velocity', _frozen(self.velocity, (3,)))
+
+    @property
+    def mass_properties(self) -> geometry.MassProperties | None:
+        """Mass (kg), central inertia (kg m^2) and centroid (body frame, m); None if massless."""
+        if self.mass is None and self.density is None:
+            return None
+        return geometry.mass_properties(self.pieces, mass=self.mass, density=self.density)
+
+
+@dataclass(frozen=True, eq=False)
+class Scene(_ArrayFieldsEq):
+    """A validated scene. ``gravity`` in m/s^2 (world frame, read-only); ``track`` names the body
+    whose x axis is "along the track" in reports (None: no such body); ``source`` is the file."""
+
+    name: str
+    gravity: np.ndarray
+    solver: SolverSpec
+    bodies: tuple[BodySpec, ...]
+    track: str | None = None
+    source: str = '<dict>'
+
+    def __post_init__(self):
+        object.__setattr__(self, 'gravity', _frozen(self.gravity, (2,)))
+        object.__setattr__(self, 'bodies', tuple(self.bodies))
+
+    def body(self, name: str) -> BodySpec:
+        """The body called ``name`` (KeyError if there is none)."""
+        for b in self.bodies:
+            if b.name == name:
+                return b
+        raise KeyError(name)
+
+
+# --------------------------------------------------------------------------------------------
+# Checkers: one per kind of value. Each takes (value, path) and returns the clean value.
+
+
+def _join(path: str, key: str) -> str:
+    return f'{path}.{key}' if path else key
+
+
+def _is_list(value) -> bool:
+    return isinstance(value, (list, tuple)) or (isinstance(value, np.ndarray) and value.ndim > 0)
+
+
+def _describe(value) -> str:
+    if value is None:
+        return 'nothing (null)'
+    if isinstance(value, (bool, np.bool_)):
+        return f'{str(bool(value)).lower()} (a boolean)'
+    if isinstance(value, str):
+        return f'the text {value!r}'
+    if isinstance(value, Mapping):
+        return 'a mapping'
+    if _is_list(value):
+        return f'a list of {len(value)} item' + ('' if len(value) == 1 else 's')
+    if isinstance(value, Real):
+        return f'{value!r}'
+    return f'a {type(value).__name__}'
+
+
+def _suggest(word: str, choices) -> str:
+    close = difflib.get_close_matches(word, list(choices), n=1, cutoff=0.6)
+    return f" (did you mean '{close[0]}'?)" if close else ''
+
+
+def _range_text(lo, hi, lo_open, hi_open) -> str:
+    if lo is not None and hi is not None:
+        return f"in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+    if lo is not None:
+        return f"{'>' if lo_open else '>='} {lo:g}"
+    return f"{'<' if hi_open else '<='} {hi:g}"
+
+
+def _number(value, path: str, lo: float | None = None, hi: float | None = None, *,
+            lo_open: bool = False, hi_open: bool = False, unit: str = '', hint: str = '') -> float:
+    """A finite real number (bool is not a number), optionally within [lo, hi] (or open ends)."""
+    expected = 'a number' + (f' ({unit})' if unit else '')
+    if lo is not None or hi is not None:
+        expected += ' ' + _range_text(lo, hi, lo_open, hi_open)
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, Real):
+        extra = ''
+        if isinstance(value, str) and _looks_numeric(value):
+            extra = '; YAML read it as text: remove any quotes'
+            if _yaml11_number(value) != value.strip():
+                extra += f' (and write it as {_yaml11_number(value)} for YAML 1.1 readers)'
+        raise _Invalid(path, f'expected {expected}, got {_describe(value)}{extra}')
+    try:
+        x = float(value)
+    except OverflowError:
+        x = math.inf
+    if not math.isfinite(x):
+        raise _Invalid(path, f'expected {expected}, got {x!r}; only finite numbers are allowed')
+    below = lo is not None and (x <= lo if lo_open else x < lo)
+    above = hi is not None and (x >= hi if hi_open else x > hi)
+    if below or above:
+        raise _Invalid(path, f'{x:g} is out of range; expected {expected}'
+                       + (f'; {hint}' if hint else ''))
+    return x
+
+
+def _looks_numeric(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _yaml11_number(text: str) -> str:
+    # YAML 1.1 (PyYAML's safe_load) needs a dot in the mantissa and a sign in the exponent.
+    mantissa, _, exponent = text.strip().lower().partition('e')
+    if '.' not in mantissa:
+        mantissa += '.0'
+    if exponent and exponent[0] not in '+-':
+        exponent = '+' + exponent
+    return f'{mantissa}e{exponent}' if exponent else mantissa
+
+
+def _vec(value, path: str, n: int, what: str = '') -> np.ndarray:
+    """A list of exactly n finite numbers."""
+    shape = f'{n} numbers' + (f' {what}' if what else '')
+    if not _is_list(value):
+        raise _Invalid(path, f'expected a list of {shape}, got {_describe(value)}')
+    if len(value) != n:
+        raise _Invalid(path, f'expected {shape}, got {_describe(value)}')
+    return np.array([_number(x, f'{path}[{k}]') for k, x in enumerate(value)])
+
+
+def _string(value, path: str) -> str:
+    if not isinstance(value, str):
+        quote = '; put it in quotes' if isinstance(value, (Real, bool)) else ''
+        raise _Invalid(path, f'expected text, got {_describe(value)}{quote}')
+    if not value.strip():
+        raise _Invalid(path, 'expected non-empty text')
+    return value
+
+
+def _choice(value, path: str, choices: tuple[str, ...]) -> str:
+    options = ', '.join(choices)
+    if not isinstance(value, str):
+        raise _Invalid(path, f'expected one of {options}, got {_describe(value)}')
+    if value not in choices:
+        raise _Invalid(path, f'unknown value {value!r}{_suggest(value, choices)}; '
+                             f'expected one of {options}')
+    return value
+
+
+def _boolean(value, path: str) -> bool:
+    if not isinstance(value, (bool, np.bool_)):
+        raise _Invalid(path, f'expected true or false, got {_describe(value)}')
+    return bool(value)
+
+
+# Common misnamings that difflib cannot guess (too short or a different word).
+_ALIASES = {
+    'mu': 'mu_static', 'friction': 'mu_static', 'mu_s': 'mu_static', 'mu_d': 'mu_dynamic',
+    'mu_k': 'mu_dynamic', 'mu_kinetic': 'mu_dynamic', 'e': 'restitution', 'cor': 'restitution',
+    'vertices': 'polygon', 'shape': 'polygon', 'position': 'pose', 'vel': 'velocity',
+    'dt': 'time_step', 'h': 'time_step', 'rtol': 'tolerance', 'freq': 'frequency',
+    'f': 'frequency', 'a': 'amplitude', 'amp': 'amplitude', 'direction': 'angle', 'g': 'gravity',
+    'kind': 'type', 'body': 'bodies', 'parts': 'bodies',
+}
+
+
+def _mapping(value, path: str, allowed) -> Mapping:
+    """A mapping with text keys drawn from ``allowed``."""
+    if not isinstance(value, Mapping):
+        where = 'the top level of the file to be ' if not path else ''
+        raise _Invalid(path, f'expected {where}a mapping with the keys {", ".join(allowed)}; '
+                             f'got {_describe(value)}')
+    for key in value:
+        if not isinstance(key, str):
+            raise _Invalid(path, f'keys must be text, got the key {_describe(key)}; '
+                                 f'allowed keys: {", ".join(allowed)}')
+        if key not in allowed:
+            guess = _suggest(key, allowed)
+            if not guess and _ALIASES.get(key) in allowed:
+                guess = f" (did you mean '{_ALIASES[key]}'?)"
+            raise _Invalid(_join(path, key), f'unknown key {key!r}{guess}; '
+                                             f'allowed keys: {", ".join(allowed)}')
+    return value
+
+
+_REQUIRED = object()   # the key must be present
+_AUTO = object()       # absent: the value is worked out later from the rest of the scene
+
+
+@dataclass(frozen=True)
+class _Field:
+    check: Callable[[Any, str], Any]
+    expected: str                     # shown when the key is missing or null
+    default: Any = _REQUIRED
+    nullable: bool = False            # pass null to ``check`` instead of rejecting it
+
+
+def _fields(value, path: str, table: Mapping[str, _Field]) -> dict[str, Any]:
+    """Check a mapping against a table of fields; returns every field, defaults filled in."""
+    data = _mapping(value, path, table)
+    out = {}
+    for key, spec in table.items():
+        sub = _join(path, key)
+        if key not in data:
+            if spec.default is _REQUIRED:
+                raise _Invalid(sub, f'missing required key {key!r}; expected {spec.expected}')
+            out[key] = spec.default
+        elif data[key] is None and not spec.nullable:
+            raise _Invalid(sub, f'{key!r} has no value; expected {spec.expected}')
+        else:
+            out[key] = spec.check(data[key], sub)
+    return out
+
+
+def _num(lo=None, hi=None, **kw) -> Callable[[Any, str], float]:
+    return lambda value, path: _number(value, path, lo, hi, **kw)
+
+
+# --------------------------------------------------------------------------------------------
+# Shapes
+
+_SIMPLE_HINT = ('give the outline as a simple counter-clockwise polygon '
+                '(edge k joins vertex k to vertex k+1, counting from 0)')
+
+
+def _vertices(value, path: str) -> np.ndarray:
+    if not _is_list(value):
+        raise _Invalid(path, f'expected a list of [x, y] vertices (m), got {_describe(value)}')
+    if len(value) < 3:
+        raise _Invalid(path, f'a polygon needs at least 3 [x, y] vertices, got {len(value)}')
+    return np.array([_vec(p, f'{path}[{k}]', 2, '[x, y] (m)') for k, p in enumerate(value)])
+
+
+def _orientation(v: np.ndarray, path: str, noun: str) -> None:
+    ok, reason = geometry.is_simple(v)
+    if not ok:
+        raise _Invalid(path, f'{noun} is {reason}; {_SIMPLE_HINT}')
+    area = geometry.polygon_area(v)
+    if area < 0:
+        raise _Invalid(path, f'{noun} vertices must be counter-clockwise; reverse the list '
+                             f'(signed area {area:.6g} m^2)')
+
+
+def _polygon(value, path: str) -> np.ndarray:
+    v = _vertices(value, path)
+    _orientation(v, path, 'polygon')
+    return v
+
+
+def _pieces(value, path: str) -> tuple[np.ndarray, ...]:
+    if not _is_list(value) or len(value) == 0:
+        raise _Invalid(path, 'expected a non-empty list of convex pieces, each a list of [x, y] '
+                             f'vertices (m), got {_describe(value)}')
+    pieces = []
+    for k, item in enumerate(value):
+        sub = f'{path}[{k}]'
+        v = _vertices(item, sub)
+        _orientation(v, sub, 'piece')
+        if not geometry.is_convex(v):
+            bad = geometry.reflex_vertices(v)
+            raise _Invalid(sub, f'piece is not convex (it turns inward at vertex {bad[0]}); '
+                                'split it into convex pieces, or give the whole outline as '
+                                '`polygon:` and let feeder_sim decompose it')
+        pieces.append(v)
+    clean = [geometry.drop_collinear(p) for p in pieces]
+    for i in range(len(clean)):
+        for j in range(i + 1, len(clean)):
+            if geometry.convex_overlap(clean[i], clean[j]):
+                raise _Invalid(path, f'pieces {i} and {j} overlap; pieces of one body may touch '
+                                     'but must not overlap (the overlap would count twice in '
+                                     'the mass)')
+    return tuple(pieces)
+
+
+# --------------------------------------------------------------------------------------------
+# Blocks
+
+_VIBRATION = {
+    'amplitude': _Field(_num(0.0, 0.1, unit='m, 0-peak',
+                             hint='feeder amplitudes are typically 1e-5 to 1e-3 m'),
+                        'the displacement amplitude in m (0-peak)'),
+    'frequency': _Field(_num(0.0, 1000.0, unit='Hz'), 'the frequency in Hz'),
+    'angle': _Field(_num(unit='rad'), 'the direction in rad from the body x axis'),
+    'phase': _Field(_num(unit='rad'), 'the phase in rad', 0.0),
+}
+
+
+def _vibration(value, path: str) -> Vibration | None:
+    if value is None:
+        return None
+    return Vibration(**_fields(value, path, _VIBRATION))
+
+
+_SOLVER = {
+    'method': _Field(lambda v, p: _choice(v, p, METHODS), 'one of ' + ', '.join(METHODS),
+                     SolverSpec.method),
+    'time_step': _Field(_num(0.0, 0.1, lo_open=True, unit='s'), 'the time step in s',
+                        SolverSpec.time_step),
+    'friction_impulse': _Field(_boolean, 'true or false', SolverSpec.friction_impulse),
+    'tolerance': _Field(_num(0.0, 1e-2, lo_open=True), 'a relative tolerance',
+                        SolverSpec.tolerance),
+}
+
+
+def _solver(value, path: str) -> SolverSpec:
+    return SolverSpec(**_fields({} if value is None else value, path, _SOLVER))
+
+
+_BODY = {
+    'name': _Field(_string, 'a unique name'),
+    'type': _Field(lambda v, p: _choice(v, p, BODY_TYPES), 'one of ' + ', '.join(BODY_TYPES)),
+    'polygon': _Field(_polygon, 'a list of [x, y] vertices (m)', None),
+    'polygons': _Field(_pieces, 'a list of convex pieces', None),
+    'pose': _Field(lambda v, p: _vec(v, p, 3, '[x, y, theta] (m, m, rad)'),
+                   '[x, y, theta] (m, m, rad)'),
+    'velocity': _Field(lambda v, p: _vec(v, p, 3, '[vx, vy, omega] (m/s, m/s, rad/s)'),
+                       '[vx, vy, omega] (m/s, m/s, rad/s)', np.zeros(3)),
+    'mass': _Field(_num(0.0, lo_open=True, unit='kg'), 'the mass in kg', None),
+    'density': _Field(_num(0.0, lo_open=True, unit='kg/m^2'), 'the areal density in kg/m^2',
+                      None),
+    'mu_static': _Field(_num(0.0, MAX_FRICTION), 'a friction coefficient', 0.0),
+    'mu_dynamic': _Field(_num(0.0, MAX_FRICTION), 'a friction coefficient', None),
+    'restitution': _Field(_num(0.0, 1.0), 'a coefficient of restitution', 0.0),
+    'vibration': _Field(_vibration, 'a mapping with amplitude, frequency, angle', None,
+                        nullable=True),
+}
+
+_WHY_NO_MASS = {
+    'static': 'a static body never moves',
+    'kinematic': "a kinematic body's motion is prescribed (by `vibration`)",
+}
+
+
+def _body(value, path: str) -> BodySpec:
+    f = _fields(value, path, _BODY)
+    kind = f['type']
+    outline, pieces = f['polygon'], f['polygons']
+    if outline is not None and pieces is not None:
+        raise _Invalid(path, 'give either `polygon` (one simple outline) or `polygons` '
+                             '(a list of convex pieces), not both')
+    if outline is None and pieces is None:
+        raise _Invalid(_join(path, 'polygon'),
+                       'missing the shape; add `polygon: [[x, y], ...]` (a simple '
+                       'counter-clockwise outline, m) or `polygons:` (a list of convex pieces)')
+    if outline is not None:
+        outlines, convex = (outline,), tuple(geometry.convex_decomposition(outline))
+    else:
+        outlines, convex = pieces, tuple(geometry.drop_collinear(p) for p in pieces)
+
+    if kind == 'dynamic':
+        if f['mass'] is not None and f['density'] is not None:
+            raise _Invalid(_join(path, 'density'), 'give either `mass` (kg) or `density` '
+                                                   '(kg/m^2), not both')
+        if f['mass'] is None and f['density'] is None:
+            raise _Invalid(_join(path, 'mass'), 'a dynamic body needs `mass` (kg) or `density` '
+                                                '(kg/m^2); its inertia follows from the shape')
+    else:
+        for key in ('mass', 'density'):
+            if f[key] is not None:
+                raise _Invalid(_join(path, key),
+                               f'{_WHY_NO_MASS[kind]}, so it takes no {key}; remove `{key}` '
+                               'or make the body `type: dynamic`')
+        if np.any(f['velocity'] != 0):
+            raise _Invalid(_join(path, 'velocity'),
+                           f'{_WHY_NO_MASS[kind]}, so its velocity must be [0, 0, 0] or left '
+                           'out; give it `type: dynamic` to set an initial velocity')
+
+    mu_s = f['mu_static']
+    mu_d = mu_s if f['mu_dynamic'] is None else f['mu_dynamic']
+    if mu_d > mu_s:
+        default = '' if 'mu_static' in value else ', the default'
+        raise _Invalid(_join(path, 'mu_dynamic'),
+                       f'mu_dynamic ({mu_d:g}) must not exceed mu_static ({mu_s:g}{default}); '
+                       'expected 0 <= mu_dynamic <= mu_static')
+    if f['vibration'] is not None and kind != 'kinematic':
+        raise _Invalid(_join(path, 'vibration'), f'only kinematic bodies vibrate, this one is '
+                                                 f'{kind}; use `type: kinematic` or remove '
+                                                 '`vibration`')
+    return BodySpec(name=f['name'], type=kind, pieces=convex, outlines=outlines, pose=f['pose'],
+                    velocity=f['velocity'], mass=f['mass'], density=f['density'],
+                    mu_static=mu_s, mu_dynamic=mu_d, restitution=f['restitution'],
+                    vibration=f['vibration'])
+
+
+def _bodies(value, path: str) -> tuple[BodySpec, ...]:
+    if not _is_list(value) or len(value) == 0:
+        raise _Invalid(path, f'expected a non-empty list of bodies, got {_describe(value)}')
+    bodies = []
+    first_use: dict[str, int] = {}
+    for k, item in enumerate(value):
+        body = _body(item, f'{path}[{k}]')
+        if body.name in first_use:
+            raise _Invalid(f'{path}[{k}].name',
+                           f'duplicate body name {body.name!r} (also used by '
+                           f'{path}[{first_use[body.name]}]); body names must be unique')
+        first_use[body.name] = k
+        bodies.append(body)
+    return tuple(bodies)
+
+
+def _track_name(value, path: str) -> str | None:
+    return None if value is None else _string(value, path)
+
+
+_TOP = {
+    'name': _Field(_string, 'a text', _AUTO),
+    'gravity': _Field(lambda v, p: _vec(v, p, 2, '[gx, gy] (m/s^2)'), '[gx, gy] (m/s^2)',
+                      np.array(DEFAULT_GRAVITY)),
+    'track': _Field(_track_name, 'the name of a body', _AUTO, nullable=True),
+    'solver': _Field(_solver, 'a mapping of solver settings', SolverSpec(), nullable=True),
+    'bodies': _Field(_bodies, 'a non-empty list of bodies'),
+}
+
+
+def _default_track(bodies: tuple[BodySpec, ...]) -> str | None:
+    for wanted in (lambda b: b.type == 'kinematic' and b.vibration is not None,
+                   lambda b: b.type != 'dynamic'):
+        for b in bodies:
+            if wanted(b):
+                return b.name
+    return None
+
+
+def _default_name(source: str) -> str:
+    return 'unnamed' if source.startswith('<') else Path(source).stem
+
+
+def parse_scene(data: Mapping, source: str = '<dict>') -> Scene:
+    """Validate a scene given as plain data (as loaded from YAML); raises SceneError."""
+    try:
+        f = _fields(data, '', _TOP)
+        bodies = f['bodies']
+        track = f['track']
+        if track is _AUTO:
+            track = _default_track(bodies)
+        elif track is not None and track not in {b.name for b in bodies}:
+            names = [b.name for b in bodies]
+            raise _Invalid('track', f'no body named {track!r}{_suggest(track, names)}; '
+                                    f'expected one of: {", ".join(names)}')
+        name = _default_name(source) if f['name'] is _AUTO else f['name']
+        return Scene(name=name, gravity=f['gravity'], solver=f['solver'], bodies=bodies,
+                     track=track, source=source)
+    except _Invalid as err:
+        raise SceneError(err.message, err.path, source) from None
+
+
+# --------------------------------------------------------------------------------------------
+# Files
+
+
+class _DuplicateKey(yaml.MarkedYAMLError):
+    pass
+
+
+class _SceneLoader(yaml.SafeLoader):
+    """SafeLoader with YAML 1.2 floats and an error on duplicate keys."""
+
+    def construct_mapping(self, node, deep=False):
+        seen: dict[Any, Any] = {}
+        for key_node, _ in node.value:
+            if key_node.tag == 'tag:yaml.org,2002:merge':
+                continue
+            key = self.construct_object(key_node, deep=True)
+            try:
+                first = seen.setdefault(key, key_node.start_mark)
+            except TypeError:
+                continue   # unhashable key: the base class reports it
+            if first is not key_node.start_mark:
+                err = _DuplicateKey('while reading a mapping', node.start_mark,
+                                    f'duplicate key {key!r}', key_node.start_mark)
+                err.first_line = first.line + 1
+                raise err
+        return super().construct_mapping(node, deep)
+
+
+# PyYAML follows YAML 1.1, where 1e-3 (no dot) and 1.0e3 (unsigned exponent) are text.
+_FLOAT_12 = re.compile(r'''^(?:
+      [-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+
+    | [-+]?\.[0-9][0-9_]*(?:[eE][-+]?[0-9]+)?
+    )$''', re.VERBOSE)
+_SceneLoader.add_implicit_resolver('tag:yaml.org,2002:float', _FLOAT_12, list('-+0123456789.'))
+
+
+def scene_dirs() -> list[Path]:
+    """Existing directories searched for shipped scenes, in order.
+
+    $FEEDER_SIM_CONFIG (a list separated by os.pathsep), <sys.prefix>/share/feeder_sim/config,
+    <prefix>/share/feeder_sim/config for each prefix in $AMENT_PREFIX_PATH (a sourced colcon
+    install), and the source tree's config/.
+    """
+    candidates = [Path(p).expanduser()
+                  for p in os.environ.get('FEEDER_SIM_CONFIG', '').split(os.pathsep) if p]
+    candidates.append(Path(sys.prefix) / 'share' / 'feeder_sim' / 'config')
+    candidates += [Path(p) / 'share' / 'feeder_sim' / 'config'
+                   for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
+    candidates.append(Path(__file__).resolve().parents[1] / 'config')
+    found: list[Path] = []
+    for d in candidates:
+        if d.is_dir() and d.resolve() not in {f.resolve() for f in found}:
+            found.append(d)
+    return found
+
+
+def _is_ros_params(data) -> bool:
+    return isinstance(data, Mapping) and any(
+        isinstance(v, Mapping) and 'ros__parameters' in v for v in data.values())
+
+
+def shipped_scenes() -> list[str]:
+    """Names of the scenes in :func:`scene_dirs` (``*.yaml`` files, minus ROS parameter files)."""
+    names = set()
+    for d in scene_dirs():
+        for f in d.glob('*.yaml'):
+            try:
+                data = yaml.load(f.read_text(encoding='utf-8'), Loader=_SceneLoader)
+            except (OSError, UnicodeError, yaml.YAMLError):
+                data = None   # listed anyway, so that loading it shows the problem
+            if not _is_ros_params(data):
+                names.add(f.stem)
+    return sorted(names)
+
+
+def _find(path_or_name: str | os.PathLike) -> Path:
+    given = os.fspath(path_or_name)
+    path = Path(given)
+    if path.is_file():
+        return path
+    if path.is_dir():
+        raise SceneError(f'{path.resolve()} is a directory; expected a .yaml scene file',
+                         source=given)
+    tried = [str(path.resolve())]
+    looks_like_name = os.sep not in given and (os.altsep is None or os.altsep not in given)
+    if looks_like_name:
+        file_name = given if path.suffix in ('.yaml', '.yml') else f'{given}.yaml'
+        for d in scene_dirs():
+            candidate = d / file_name
+            if candidate.is_file():
+                return candidate
+            tried.append(str(candidate))
+    shipped = shipped_scenes()
+    raise SceneError(f'scene not found; looked for {", ".join(tried)}. Give the path of a .yaml '
+                     'file or the name of a shipped scene '
+                     f'({", ".join(shipped) if shipped else "none found"}); '
+                     'set FEEDER_SIM_CONFIG to add a scene directory', source=given)
+
+
+def load_scene(path_or_name: str | os.PathLike) -> Scene:
+    """Load and validate a scene file, given its path or the name of a shipped scene."""
+    path = _find(path_or_name)
+    source = str(path)
+    try:
+        text = path.read_text(encoding='utf-8')
+    except UnicodeDecodeError as err:
+        raise SceneError(f'not UTF-8 text ({err.reason} at byte {err.start}); save the file as '
+                         'UTF-8', source=source) from None
+    except OSError as err:
+        raise SceneError(f'cannot read the file: {err.strerror}', source=source) from None
+    try:
+        data = yaml.load(text, Loader=_SceneLoader)
+    except yaml.MarkedYAMLError as err:
+        mark = err.problem_mark or err.context_mark
+        line, column = (mark.line + 1, mark.column + 1) if mark else (None, None)
+        where = f' at line {line}, column {column}' if mark else ''
+        if isinstance(err, _DuplicateKey):
+            raise SceneError(f'{err.problem}{where} (first given at line {err.first_line}); '
+                             'each key may appear only once', source=source, line=line,
+                             column=column) from None
+        problem = err.problem or str(err)
+        hint = ('; YAML indentation must use spaces, not tabs' if '\\t' in problem
+                else '; check the indentation, colons and brackets there')
+        raise SceneError(f'YAML syntax error{where}: {problem}{hint}', source=source,
+                         line=line, column=column) from None
+    except yaml.YAMLError as err:
+        raise SceneError(f'YAML error: {err}', source=source) from None
+    if data is None:
+        raise SceneError('the file is empty; expected a mapping with at least `bodies`',
+                         source=source)
+    return parse_scene(data, source)
+
+
+# --------------------------------------------------------------------------------------------
+# Back to plain data
+
+
+def _floats(arr) -> list:
+    return np.asarray(arr, dtype=float).tolist()
+
+
+def scene_to_dict(scene: Scene) -> dict:
+    """Plain data (YAML/JSON-ready) that :func:`parse_scene` turns back into an equal scene."""
+    bodies = []
+    for b in scene.bodies:
+        d: dict[str, Any] = {'name': b.name, 'type': b.type}
+        if len(b.outlines) == 1:
+            d['polygon'] = _floats(b.outlines[0])
+        else:
+            d['polygons'] = [_floats(p) for p in b.outlines]
+        d['pose'] = _floats(b.pose)
+        d['velocity'] = _floats(b.velocity)
+        for key in ('mass', 'density'):
+            if getattr(b, key) is not None:
+                d[key] = float(getattr(b, key))
+        d.update(mu_static=float(b.mu_static), mu_dynamic=float(b.mu_dynamic),
+                 restitution=float(b.restitution))
+        if b.vibration is not None:
+            d['vibration'] = {f.name: float(getattr(b.vibration, f.name))
+                              for f in fields(Vibration)}
+        bodies.append(d)
+    s = scene.solver
+    return {
+        'name': scene.name,
+        'gravity': _floats(scene.gravity),
+        'track': scene.track,
+        'solver': {'method': s.method, 'time_step': float(s.time_step),
+                   'friction_impulse': bool(s.friction_impulse),
+                   'tolerance': float(s.tolerance)},
+        'bodies': bodies,
+    }
