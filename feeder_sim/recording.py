@@ -1,0 +1,760 @@
+"""MCAP recording of feeder_sim runs with ROS 2 message encoding, without ROS.
+
+Logs use the ``ros2`` MCAP profile: channel message encoding ``cdr``, schema encoding
+``ros2msg`` with the full message definition (see :mod:`feeder_sim.msgdefs`), so that
+``ros2 bag``, Foxglove, mcap-ros2-support and rerun read them.  The payloads are serialized
+here (XCDR1, little endian, encapsulation header ``00 01 00 00``) for the few message types
+the simulator publishes; nothing from rclpy or the ROS message packages is imported.
+
+Durability: the file is written through a small wrapper that hands every finished chunk and its
+message index to the operating system right away, so a process killed with SIGKILL leaves a
+file from which :func:`read_messages` recovers every message of the completed chunks.  Only
+:meth:`McapRecorder.close` writes the summary and footer (and fsyncs once).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+import contextlib
+import importlib.metadata
+import io
+import operator
+import os
+import struct
+import sys
+import threading
+import time
+from typing import Self
+import warnings
+
+from mcap.data_stream import ReadDataStream
+from mcap.opcode import Opcode
+from mcap.records import Channel, Chunk, Message
+from mcap.stream_reader import breakup_chunk
+from mcap.writer import CompressionType, Writer
+import numpy as np
+
+from . import msgdefs
+
+try:
+    import zstandard  # noqa: F401
+except ImportError:  # pragma: no cover - depends on the environment
+    _HAVE_ZSTD = False
+else:
+    _HAVE_ZSTD = True
+
+try:
+    import lz4.frame  # noqa: F401
+except ImportError:  # pragma: no cover - depends on the environment
+    _HAVE_LZ4 = False
+else:
+    _HAVE_LZ4 = True
+
+__all__ = [
+    'CONTACT_FIELDS',
+    'CONTACT_POINT_DTYPE',
+    'CONTACT_POINT_STEP',
+    'DEFAULT_COMPRESSION',
+    'TOPICS',
+    'TOPIC_CLOCK',
+    'TOPIC_CONTACTS',
+    'TOPIC_PART_POSES',
+    'TOPIC_TRACK_STATE',
+    'TOPIC_VIBRATION_CMD',
+    'McapRecorder',
+    'RecordingError',
+    'read_messages',
+]
+
+TOPIC_CLOCK = '/clock'
+TOPIC_PART_POSES = '/feeder_sim/part_poses'
+TOPIC_CONTACTS = '/feeder_sim/contacts'
+TOPIC_TRACK_STATE = '/feeder_sim/track_state'
+TOPIC_VIBRATION_CMD = '/vibration_cmd'
+
+#: topic -> ROS 2 message type, in the order the channels are registered.
+TOPICS: dict[str, str] = {
+    TOPIC_CLOCK: 'rosgraph_msgs/msg/Clock',
+    TOPIC_PART_POSES: 'geometry_msgs/msg/PoseArray',
+    TOPIC_CONTACTS: 'sensor_msgs/msg/PointCloud2',
+    TOPIC_TRACK_STATE: 'sensor_msgs/msg/JointState',
+    TOPIC_VIBRATION_CMD: 'std_msgs/msg/Float64MultiArray',
+}
+
+DEFAULT_COMPRESSION = 'zstd' if _HAVE_ZSTD else 'none'
+
+# sensor_msgs/PointField datatype codes.
+_FLOAT32 = 7
+_UINT32 = 6
+
+#: (name, byte offset, PointField datatype) of each field of a contact point.
+CONTACT_FIELDS: tuple[tuple[str, int, int], ...] = (
+    ('x', 0, _FLOAT32),
+    ('y', 4, _FLOAT32),
+    ('z', 8, _FLOAT32),
+    ('normal_x', 12, _FLOAT32),
+    ('normal_y', 16, _FLOAT32),
+    ('normal_impulse', 20, _FLOAT32),
+    ('tangent_impulse', 24, _FLOAT32),
+    ('body_a', 28, _UINT32),
+    ('body_b', 32, _UINT32),
+)
+CONTACT_POINT_STEP = 36
+
+#: numpy dtype of one contact point in PointCloud2.data (for decoding logs).
+CONTACT_POINT_DTYPE = np.dtype({
+    'names': [name for name, _, _ in CONTACT_FIELDS],
+    'formats': ['<f4' if code == _FLOAT32 else '<u4' for _, _, code in CONTACT_FIELDS],
+    'offsets': [offset for _, offset, _ in CONTACT_FIELDS],
+    'itemsize': CONTACT_POINT_STEP,
+})
+
+_ENCAPSULATION = b'\x00\x01\x00\x00'  # CDR, little endian, no options
+_NS_PER_S = 1_000_000_000
+_MAX_STAMP_NS = (2 ** 31) * _NS_PER_S  # builtin_interfaces/Time.sec is an int32
+_U32 = struct.Struct('<I')
+_STAMP = struct.Struct('<iI')
+_MCAP_MAGIC = b'\x89MCAP0\r\n'
+_RECORD_HEADER = struct.Struct('<BQ')
+
+
+class RecordingError(OSError):
+    """The MCAP file could not be opened, written or finalized, or the recorder is unusable."""
+
+
+def _library_version() -> str:
+    package = sys.modules.get(__package__ or '')
+    version = getattr(package, '__version__', None)
+    if isinstance(version, str) and version:
+        return version
+    try:
+        return importlib.metadata.version('feeder_sim')
+    except importlib.metadata.PackageNotFoundError:
+        return 'unknown'
+
+
+def _io_error(action: str, path: str, exc: BaseException) -> RecordingError:
+    cause = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+    errno = exc.errno if isinstance(exc, OSError) and exc.errno else None
+    message = f'{action} MCAP recording {path!r}: {cause}'
+    if errno is None:
+        return RecordingError(message)
+    return RecordingError(errno, message)
+
+
+# --------------------------------------------------------------------------------------------
+# CDR building blocks
+
+
+def _pad(offset: int, alignment: int) -> bytes:
+    return b'\x00' * (-offset % alignment)
+
+
+def _cdr_string(text: str) -> bytes:
+    """Length-prefixed, NUL-terminated UTF-8 string (not padded)."""
+    if not isinstance(text, str):
+        raise TypeError(f'expected a str, got {type(text).__name__}')
+    raw = text.encode('utf-8')
+    if b'\x00' in raw:
+        raise ValueError(f'string {text!r} contains a NUL character')
+    return _U32.pack(len(raw) + 1) + raw + b'\x00'
+
+
+def _stamp(t_ns: int) -> bytes:
+    """builtin_interfaces/Time of an integer nanosecond time, validated."""
+    try:
+        t = operator.index(t_ns)
+    except TypeError:
+        raise TypeError(
+            f'time must be an integer number of nanoseconds, got {type(t_ns).__name__}') from None
+    if not 0 <= t < _MAX_STAMP_NS:
+        raise ValueError(f'time {t} ns is outside [0, 2**31 s)')
+    sec, nanosec = divmod(t, _NS_PER_S)
+    return _STAMP.pack(sec, nanosec)
+
+
+def _pointfield_block() -> bytes:
+    """The `fields` sequence of the contact PointCloud2; starts at a 4-aligned offset."""
+    parts = [_U32.pack(len(CONTACT_FIELDS))]
+    size = 4
+    for name, offset, code in CONTACT_FIELDS:
+        name_bytes = _cdr_string(name)
+        parts.append(name_bytes)
+        size += len(name_bytes)
+        parts.append(_pad(size, 4))
+        size += len(parts[-1])
+        parts.append(struct.pack('<IB3xI', offset, code, 1))
+        size += 12
+    return b''.join(parts)
+
+
+_POINTFIELDS = _pointfield_block()
+_CLOUD_TAIL = struct.Struct('<?3xIII')  # is_bigendian, point_step, row_step, len(data)
+_CLOUD_SIZE = struct.Struct('<II')  # height, width
+_MULTIARRAY_2 = struct.Struct('<III4xdd')  # no dims, data_offset, len(data) = 2, two float64
+_DENSE = b'\x01'
+
+
+class _Frame:
+    """Per-frame_id constant part of a std_msgs/Header: the encoded string and its padding."""
+
+    __slots__ = ('offset', 'padded', 'string')
+
+    def __init__(self, frame_id: str):
+        self.string = _cdr_string(frame_id)
+        # Offset (within the CDR body) just past the header, then padded to 4.
+        end = 8 + len(self.string)
+        self.padded = self.string + _pad(end, 4)
+        self.offset = end + (-end % 4)
+
+
+def _as_float_array(name: str, value, shape_tail: tuple[int, ...]) -> np.ndarray:
+    array = np.asarray(value, dtype=np.float64)
+    if array.ndim != 1 + len(shape_tail) or array.shape[1:] != shape_tail:
+        if array.size == 0:
+            return array.reshape((0, *shape_tail))
+        want = '(n, ' + ', '.join(map(str, shape_tail)) + ')' if shape_tail else '(n,)'
+        raise ValueError(f'{name} must have shape {want}, got {array.shape}')
+    return array
+
+
+def _as_index_array(name: str, value, count: int) -> np.ndarray:
+    array = np.asarray(value)
+    if array.size == 0:
+        array = array.astype(np.int64)
+    if array.ndim != 1 or array.shape[0] != count:
+        raise ValueError(f'{name} must have shape ({count},), got {array.shape}')
+    if array.dtype.kind not in 'iub':
+        raise TypeError(f'{name} must hold integer body indices, got dtype {array.dtype}')
+    if count and (int(array.min()) < 0 or int(array.max()) > 0xFFFFFFFF):
+        raise ValueError(f'{name} holds values outside the uint32 range')
+    return array
+
+
+# --------------------------------------------------------------------------------------------
+# File wrapper
+
+
+class _ChunkFile:
+    """Output stream for mcap's Writer that reaches the OS only at record boundaries.
+
+    The writer only calls write() and tell().  Data is collected in memory and handed to the
+    OS by flush(), which the recorder calls after each operation that completed records
+    (a chunk and its message indexes, a metadata record, the header, the summary).  If a write
+    fails, the file is cut back to the end of the last complete flush, so that it still holds
+    only whole records.
+    """
+
+    def __init__(self, path: str):
+        self.path = path
+        flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, 'O_CLOEXEC', 0)
+        self._fd: int | None = os.open(path, flags, 0o666)
+        self._parts: list[bytes] = []
+        self._pending = 0
+        self._written = 0  # bytes handed to the OS
+
+    @property
+    def pending(self) -> int:
+        return self._pending
+
+    def write(self, data) -> int:
+        size = len(data)
+        if size:
+            self._parts.append(bytes(data))
+            self._pending += size
+        return size
+
+    def tell(self) -> int:
+        return self._written + self._pending
+
+    def seekable(self) -> bool:  # pragma: no cover - not used by the writer
+        return False
+
+    def flush(self) -> None:
+        if not self._pending:
+            return
+        if self._fd is None:
+            raise ValueError('file is closed')
+        data = self._parts[0] if len(self._parts) == 1 else b''.join(self._parts)
+        self._parts.clear()
+        self._pending = 0
+        view = memoryview(data)
+        good_end = self._written
+        try:
+            while view:
+                count = os.write(self._fd, view)
+                if count <= 0:  # pragma: no cover - os.write raises instead
+                    raise OSError(0, 'write returned no progress')
+                view = view[count:]
+                self._written += count
+        except OSError:
+            self._cut_back(good_end)
+            raise
+
+    def _cut_back(self, size: int) -> None:
+        self._parts.clear()
+        self._pending = 0
+        try:
+            os.ftruncate(self._fd, size)
+            os.lseek(self._fd, size, os.SEEK_SET)
+            self._written = size
+        except OSError:
+            pass  # best effort: e.g. a character device cannot be truncated
+
+    def sync(self) -> None:
+        try:
+            os.fsync(self._fd)
+        except OSError as exc:
+            # Devices and some pseudo file systems do not support fsync; that is not a failure.
+            if exc.errno not in (22, 95):  # EINVAL, EOPNOTSUPP
+                raise
+
+    def close(self) -> None:
+        fd, self._fd = self._fd, None
+        self._parts.clear()
+        self._pending = 0
+        if fd is not None:
+            os.close(fd)
+
+
+# --------------------------------------------------------------------------------------------
+# Recorder
+
+_OPEN, _CLOSING, _CLOSED, _FAILED = 'open', 'closing', 'closed', 'failed'
+
+_COMPRESSIONS = {
+    'zstd': (CompressionType.ZSTD, _HAVE_ZSTD, 'zstandard'),
+    'lz4': (CompressionType.LZ4, _HAVE_LZ4, 'lz4'),
+    'none': (CompressionType.NONE, True, ''),
+    '': (CompressionType.NONE, True, ''),
+}
+
+
+class McapRecorder:
+    """Writes one feeder_sim run to an MCAP file with ROS 2 (CDR) messages.
+
+    All channels of :data:`TOPICS` are registered when the file is opened.  Times are simulated
+    time in integer nanoseconds; each message's log time, publish time and header stamp are
+    that time.  Methods raise :class:`RecordingError` when the file cannot be written; after
+    such an error the recorder stops writing (the file keeps every chunk completed before the
+    error) and further writes raise :class:`RecordingError` too.
+
+    ``close()`` finalizes the file; it is idempotent, thread safe and may be called from a
+    signal handler, also while a write is in progress in the interrupted code: the close then
+    happens as soon as that write returns.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        *,
+        chunk_size: int = 256 * 1024,
+        metadata: Mapping[str, str] | None = None,
+        compression: str = DEFAULT_COMPRESSION,
+        flush_interval: float | None = None,
+    ):
+        """Open ``path`` (truncating it) and write header, schemas and channels.
+
+        ``flush_interval`` (wall-clock seconds, optional) also closes the open chunk when it is
+        older than that, bounding what a hard kill can lose in slow runs.  ``metadata`` is
+        written as a metadata record named ``feeder_sim``.
+        """
+        self._path = os.fspath(path)
+        if isinstance(self._path, bytes):
+            self._path = os.fsdecode(self._path)
+        if int(chunk_size) <= 0:
+            raise ValueError(f'chunk_size must be positive, got {chunk_size}')
+        try:
+            compression_type, available, module = _COMPRESSIONS[str(compression).lower()]
+        except KeyError:
+            raise ValueError(
+                f"compression must be 'zstd', 'lz4' or 'none', got {compression!r}") from None
+        if not available:
+            raise ValueError(f'compression {compression!r} needs the {module} package')
+        if flush_interval is not None and not flush_interval > 0:
+            raise ValueError(f'flush_interval must be positive, got {flush_interval}')
+
+        self._lock = threading.RLock()
+        self._busy = False
+        self._close_requested = False
+        self._state = _FAILED  # until fully opened
+        self._error: RecordingError | None = None
+        self._messages = 0
+        self._flush_interval = flush_interval
+        self._last_flush = time.monotonic()
+        self._frames: dict[str, _Frame] = {}
+        self._names_cache: tuple[tuple[str, ...], bytes] = ((), _U32.pack(0))
+
+        try:
+            self._file = _ChunkFile(self._path)
+        except OSError as exc:
+            raise _io_error('cannot create', self._path, exc) from exc
+        try:
+            self._writer = Writer(
+                self._file, chunk_size=int(chunk_size), compression=compression_type)
+            self._writer.start(profile='ros2', library=f'feeder_sim {_library_version()}')
+            self._channels: dict[str, int] = {}
+            schema_ids: dict[str, int] = {}
+            for topic, type_name in TOPICS.items():
+                if type_name not in schema_ids:
+                    schema_ids[type_name] = self._writer.register_schema(
+                        name=type_name, encoding='ros2msg',
+                        data=msgdefs.definition(type_name).encode('utf-8'))
+                self._channels[topic] = self._writer.register_channel(
+                    topic=topic, message_encoding='cdr', schema_id=schema_ids[type_name])
+            if metadata is not None:
+                self._writer.add_metadata('feeder_sim', _check_metadata(metadata))
+            self._file.flush()
+        except BaseException as exc:
+            self._file.close()
+            if isinstance(exc, OSError):
+                raise _io_error('cannot write', self._path, exc) from exc
+            raise
+        self._sequence = dict.fromkeys(self._channels.values(), 0)
+        self._ch_clock = self._channels[TOPIC_CLOCK]
+        self._ch_poses = self._channels[TOPIC_PART_POSES]
+        self._ch_contacts = self._channels[TOPIC_CONTACTS]
+        self._ch_track = self._channels[TOPIC_TRACK_STATE]
+        self._ch_vibration = self._channels[TOPIC_VIBRATION_CMD]
+        self._state = _OPEN
+
+    # -- properties --------------------------------------------------------------------------
+
+    @property
+    def path(self) -> str:
+        return self._path
+
+    @property
+    def closed(self) -> bool:
+        return self._state != _OPEN
+
+    @property
+    def bytes_written(self) -> int:
+        """Bytes written to the file so far (the open chunk is not counted until it is done)."""
+        return self._file.tell()
+
+    @property
+    def messages_written(self) -> int:
+        """Messages accepted by the recorder (including those in the open chunk)."""
+        return self._messages
+
+    # -- message writers ---------------------------------------------------------------------
+
+    def write_clock(self, t_ns: int) -> None:
+        """rosgraph_msgs/Clock on /clock."""
+        self._emit(self._ch_clock, t_ns, _ENCAPSULATION + _stamp(t_ns))
+
+    def write_part_poses(self, t_ns: int, positions, angles, frame_id: str = 'world') -> None:
+        """geometry_msgs/PoseArray: planar poses (positions (n, 2) m, angles (n,) rad)."""
+        stamp = _stamp(t_ns)
+        positions = _as_float_array('positions', positions, (2,))
+        angles = _as_float_array('angles', angles, ())
+        count = angles.shape[0]
+        if positions.shape[0] != count:
+            raise ValueError(
+                f'positions has {positions.shape[0]} rows but angles has {count} entries')
+        frame = self._frame(frame_id)
+        parts = [_ENCAPSULATION, stamp, frame.padded, _U32.pack(count)]
+        if count:
+            poses = np.zeros((count, 7), dtype='<f8')
+            poses[:, 0:2] = positions
+            half = 0.5 * angles
+            poses[:, 5] = np.sin(half)
+            poses[:, 6] = np.cos(half)
+            parts.append(_pad(frame.offset + 4, 8))
+            parts.append(poses.tobytes())
+        self._emit(self._ch_poses, t_ns, b''.join(parts))
+
+    def write_contacts(self, t_ns: int, points, normals, normal_impulse, tangent_impulse,
+                       body_a, body_b, frame_id: str = 'world') -> None:
+        """sensor_msgs/PointCloud2 with one point per contact (see :data:`CONTACT_FIELDS`)."""
+        stamp = _stamp(t_ns)
+        normal_impulse = _as_float_array('normal_impulse', normal_impulse, ())
+        count = normal_impulse.shape[0]
+        points = _as_float_array('points', points, (2,))
+        normals = _as_float_array('normals', normals, (2,))
+        tangent_impulse = _as_float_array('tangent_impulse', tangent_impulse, ())
+        for name, array in (('points', points), ('normals', normals),
+                            ('tangent_impulse', tangent_impulse)):
+            if array.shape[0] != count:
+                raise ValueError(
+                    f'{name} has {array.shape[0]} rows but normal_impulse has {count} entries')
+        body_a = _as_index_array('body_a', body_a, count)
+        body_b = _as_index_array('body_b', body_b, count)
+        frame = self._frame(frame_id)
+        cloud = np.empty((count, 9), dtype='<f4')
+        cloud[:, 0:2] = points
+        cloud[:, 2] = 0.0
+        cloud[:, 3:5] = normals
+        cloud[:, 5] = normal_impulse
+        cloud[:, 6] = tangent_impulse
+        ids = cloud.view('<u4')
+        ids[:, 7] = body_a
+        ids[:, 8] = body_b
+        size = count * CONTACT_POINT_STEP
+        payload = b''.join((
+            _ENCAPSULATION, stamp, frame.padded, _CLOUD_SIZE.pack(1, count), _POINTFIELDS,
+            _CLOUD_TAIL.pack(False, CONTACT_POINT_STEP, size, size), cloud.tobytes(), _DENSE,
+        ))
+        self._emit(self._ch_contacts, t_ns, payload)
+
+    def write_track_state(self, t_ns: int, names: Sequence[str], position,
+                          velocity=None) -> None:
+        """sensor_msgs/JointState: names, position along the track [m], speed [m/s]."""
+        stamp = _stamp(t_ns)
+        count, names_block = self._names(names)
+        position = _as_float_array('position', position, ())
+        if position.shape[0] != count:
+            raise ValueError(f'position has {position.shape[0]} entries for {count} names')
+        if velocity is None:
+            velocity = position[:0]
+        velocity = _as_float_array('velocity', velocity, ())
+        if velocity.shape[0] not in (0, count):
+            raise ValueError(f'velocity has {velocity.shape[0]} entries for {count} names')
+        frame = self._frame('')
+        parts = [_ENCAPSULATION, stamp, frame.padded, names_block]
+        offset = frame.offset + len(names_block)
+        for values in (position, velocity):
+            parts.append(_U32.pack(values.shape[0]))
+            offset += 4
+            if values.shape[0]:
+                padding = _pad(offset, 8)
+                parts.append(padding)
+                parts.append(values.astype('<f8', copy=False).tobytes())
+                offset += len(padding) + 8 * values.shape[0]
+        parts.append(b'\x00\x00\x00\x00')  # effort: empty
+        self._emit(self._ch_track, t_ns, b''.join(parts))
+
+    def write_vibration_cmd(self, t_ns: int, amplitude_m: float, frequency_hz: float) -> None:
+        """std_msgs/Float64MultiArray with data = [amplitude_m, frequency_hz]."""
+        _stamp(t_ns)
+        payload = _ENCAPSULATION + _MULTIARRAY_2.pack(
+            0, 0, 2, float(amplitude_m), float(frequency_hz))
+        self._emit(self._ch_vibration, t_ns, payload)
+
+    def write_metadata(self, name: str, data: Mapping[str, str]) -> None:
+        """MCAP metadata record (e.g. the scene YAML text or the solver settings)."""
+        if not isinstance(name, str):
+            raise TypeError('metadata name must be a str')
+        data = _check_metadata(data)
+        with self._lock:
+            self._check_open()
+            self._busy = True
+            try:
+                self._writer.add_metadata(name, data)
+                self._file.flush()
+            except OSError as exc:
+                raise self._fail(exc) from exc
+            finally:
+                self._busy = False
+            if self._close_requested:
+                self._close_locked()
+
+    def flush(self) -> None:
+        """End the open chunk (if it holds messages) and hand everything to the OS."""
+        with self._lock:
+            self._check_open()
+            self._busy = True
+            try:
+                self._writer.flush()
+                self._last_flush = time.monotonic()
+            except OSError as exc:
+                raise self._fail(exc) from exc
+            finally:
+                self._busy = False
+            if self._close_requested:
+                self._close_locked()
+
+    # -- closing -----------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Finalize the file (last chunk, summary, footer), fsync and close it. Idempotent."""
+        with self._lock:
+            if self._busy:
+                # Called from a signal handler that interrupted a write of this thread:
+                # finishing the file now would corrupt it; the write closes it when done.
+                self._close_requested = True
+                return
+            self._close_locked()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        self.close()
+
+    def __del__(self):
+        # Finalize a recorder that was never closed; a finalizer cannot report errors.
+        with contextlib.suppress(Exception):
+            if getattr(self, '_state', None) == _OPEN:
+                self.close()
+
+    # -- internals ---------------------------------------------------------------------------
+
+    def _frame(self, frame_id: str) -> _Frame:
+        frame = self._frames.get(frame_id)
+        if frame is None:
+            frame = _Frame(frame_id)
+            self._frames[frame_id] = frame
+        return frame
+
+    def _names(self, names: Sequence[str]) -> tuple[int, bytes]:
+        """Count and encoded ``string[]`` of the joint names (cached: they rarely change)."""
+        key = names if isinstance(names, tuple) else tuple(names)
+        cached_key, block = self._names_cache
+        if key != cached_key:
+            parts = [_U32.pack(len(key))]
+            for name in key:
+                encoded = _cdr_string(name)
+                parts.append(encoded)
+                parts.append(_pad(len(encoded), 4))
+            block = b''.join(parts)
+            self._names_cache = (key, block)
+        return len(key), block
+
+    def _check_open(self) -> None:
+        if self._state == _OPEN:
+            return
+        if self._state == _FAILED and self._error is not None:
+            raise RecordingError(
+                self._error.errno or 0,
+                f'MCAP recording {self._path!r} stopped after an earlier write error: '
+                f'{self._error.strerror or self._error}')
+        raise RecordingError(f'MCAP recording {self._path!r} is closed')
+
+    def _emit(self, channel_id: int, t_ns: int, payload: bytes) -> None:
+        with self._lock:
+            self._check_open()
+            self._busy = True
+            try:
+                sequence = (self._sequence[channel_id] + 1) & 0xFFFFFFFF
+                self._sequence[channel_id] = sequence
+                self._writer.add_message(
+                    channel_id, log_time=t_ns, data=payload, publish_time=t_ns,
+                    sequence=sequence)
+                self._messages += 1
+                if self._file.pending:
+                    # The writer just finished a chunk and its message indexes.
+                    self._file.flush()
+                    self._last_flush = time.monotonic()
+                elif self._flush_interval is not None and (
+                        time.monotonic() - self._last_flush >= self._flush_interval):
+                    self._writer.flush()
+                    self._last_flush = time.monotonic()
+            except OSError as exc:
+                raise self._fail(exc) from exc
+            finally:
+                self._busy = False
+            if self._close_requested:
+                self._close_locked()
+
+    def _fail(self, exc: OSError) -> RecordingError:
+        error = exc if isinstance(exc, RecordingError) else _io_error(
+            'cannot write to', self._path, exc)
+        self._state = _FAILED
+        self._error = error
+        try:
+            self._file.close()
+        except OSError:
+            pass
+        return error
+
+    def _close_locked(self) -> None:
+        self._close_requested = False
+        if self._state == _FAILED:
+            self._state = _CLOSED
+            return
+        if self._state != _OPEN:
+            return  # closed, or being closed further up this thread's stack
+        self._state = _CLOSING
+        try:
+            self._writer.finish()
+            self._file.flush()
+            self._file.sync()
+        except OSError as exc:
+            self._error = _io_error('cannot finalize', self._path, exc)
+            raise self._error from exc
+        finally:
+            self._state = _CLOSED
+            try:
+                self._file.close()
+            except OSError:
+                pass
+
+
+def _check_metadata(data: Mapping[str, str]) -> dict[str, str]:
+    result = dict(data)
+    for key, value in result.items():
+        if not isinstance(key, str) or not isinstance(value, str):
+            raise TypeError('metadata keys and values must be str')
+    return result
+
+
+# --------------------------------------------------------------------------------------------
+# Reading back
+
+
+def read_messages(path: str | os.PathLike,
+                  topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, bytes]]:
+    """Yield ``(topic, log_time_ns, cdr_payload)`` of every message, in file order.
+
+    Works on finalized files and on files whose writer was killed: reading stops quietly at the
+    first record that is incomplete (or at a chunk that fails its CRC), after yielding every
+    message of the complete chunks before it.  A file that does not start like an MCAP file
+    raises ``ValueError``; an empty file yields nothing.
+    """
+    wanted = None if topics is None else {topics} if isinstance(topics, str) else set(topics)
+    with open(path, 'rb') as stream:
+        size = os.fstat(stream.fileno()).st_size
+        magic = stream.read(len(_MCAP_MAGIC))
+        if magic != _MCAP_MAGIC:
+            if _MCAP_MAGIC.startswith(magic):
+                return  # cut off before (or inside) the leading magic
+            raise ValueError(f'{os.fspath(path)!r} is not an MCAP file')
+        position = len(magic)
+        channels: dict[int, str] = {}
+        while True:
+            head = stream.read(_RECORD_HEADER.size)
+            if len(head) < _RECORD_HEADER.size:
+                return
+            opcode, length = _RECORD_HEADER.unpack(head)
+            position += _RECORD_HEADER.size
+            if length > size - position:
+                return  # truncated record
+            if opcode not in (Opcode.CHANNEL, Opcode.MESSAGE, Opcode.CHUNK):
+                if opcode in (Opcode.FOOTER, Opcode.DATA_END):
+                    return
+                stream.seek(length, io.SEEK_CUR)
+                position += length
+                continue
+            body = stream.read(length)
+            position += length
+            if len(body) < length:
+                return
+            try:
+                records = _parse_record(opcode, body)
+            except Exception as exc:  # noqa: BLE001 - a damaged record ends the readable part
+                warnings.warn(f'{os.fspath(path)!r}: stopped reading at a damaged record '
+                              f'at offset {position - length - 9}: {exc}', stacklevel=2)
+                return
+            for record in records:
+                if isinstance(record, Channel):
+                    channels[record.id] = record.topic
+                elif isinstance(record, Message):
+                    topic = channels.get(record.channel_id)
+                    if topic is not None and (wanted is None or topic in wanted):
+                        yield topic, record.log_time, record.data
+
+
+def _parse_record(opcode: int, body: bytes) -> list:
+    stream = ReadDataStream(io.BytesIO(body))
+    if opcode == Opcode.CHANNEL:
+        return [Channel.read(stream)]
+    if opcode == Opcode.MESSAGE:
+        return [Message.read(stream, len(body))]
+    chunk = Chunk.read(stream)
+    if chunk.compression == '' and len(chunk.data) != chunk.uncompressed_size:
+        raise ValueError('chunk data is shorter than its declared size')
+    records = breakup_chunk(chunk, validate_crc=True)
+    return [record for record in records if isinstance(record, (Channel, Message))]
+
