@@ -1,0 +1,106 @@
+"""Prescribed sinusoidal motion of kinematic bodies (the vibrating track).
+
+A drive moves its body along a fixed world direction by ``d(t) = A sin(phi(t)) + c(t)``.
+Commands change amplitude and frequency during a run. The displacement never jumps: the new
+sinusoid starts at the phase where it passes through the current displacement, moving the same
+way as before; when that is impossible (the new amplitude is smaller than the current
+displacement, or zero) the phase is kept and the mismatch ``c`` fades out over one period with
+a raised-cosine blend, whose velocity is zero at both ends. Velocity may jump at a command, as it
+would when a real drive is switched: contacts see that as an impact.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import math
+
+import numpy as np
+
+TWO_PI = 2.0 * math.pi
+
+
+@dataclass
+class _Segment:
+    start_s: float
+    amplitude_m: float
+    frequency_hz: float
+    phase_rad: float          # phase at start_s
+    offset_m: float = 0.0     # c(start_s); fades to zero over blend_s
+    blend_s: float = 0.0
+
+
+@dataclass
+class Drive:
+    """Displacement of one kinematic body along ``direction`` (unit vector, world frame)."""
+
+    direction: np.ndarray
+    amplitude_m: float
+    frequency_hz: float
+    phase_rad: float = 0.0
+    _segments: list[_Segment] = field(default_factory=list, repr=False)
+
+    def __post_init__(self) -> None:
+        self.direction = np.asarray(self.direction, dtype=float)
+        self._initial = (self.amplitude_m, self.frequency_hz, self.phase_rad)
+        self.reset()
+
+    def _segment(self, t: float) -> _Segment:
+        # Commands arrive in time order, so the active segment is nearly always the last one.
+        for seg in reversed(self._segments):
+            if t >= seg.start_s:
+                return seg
+        return self._segments[0]
+
+    def motion(self, t: float) -> tuple[float, float, float]:
+        """Displacement (m), velocity (m/s) and acceleration (m/s^2) along ``direction``."""
+        seg = self._segment(t)
+        tau = t - seg.start_s
+        omega = TWO_PI * seg.frequency_hz
+        phi = seg.phase_rad + omega * tau
+        s, c = math.sin(phi), math.cos(phi)
+        d = seg.amplitude_m * s
+        v = seg.amplitude_m * omega * c
+        a = -seg.amplitude_m * omega * omega * s
+        if seg.offset_m and tau < seg.blend_s:
+            k = math.pi / seg.blend_s
+            d += 0.5 * seg.offset_m * (1.0 + math.cos(k * tau))
+            v -= 0.5 * seg.offset_m * k * math.sin(k * tau)
+            a -= 0.5 * seg.offset_m * k * k * math.cos(k * tau)
+        return d, v, a
+
+    def next_change_after(self, t: float) -> float:
+        """The next time after ``t`` at which the motion stops being smooth (end of a blend)."""
+        seg = self._segment(t)
+        end = seg.start_s + seg.blend_s
+        return end if seg.offset_m and end > t else math.inf
+
+    def command(self, t: float, amplitude_m: float, frequency_hz: float) -> None:
+        """Switch to a new amplitude and frequency from time ``t`` on, keeping d(t) continuous."""
+        if amplitude_m < 0 or frequency_hz < 0 or not (
+                math.isfinite(amplitude_m) and math.isfinite(frequency_hz)):
+            raise ValueError('amplitude_m and frequency_hz must be finite and >= 0, got '
+                             f'{amplitude_m!r}, {frequency_hz!r}')
+        d, v, _ = self.motion(t)
+        old = self._segment(t)
+        old_phase = old.phase_rad + TWO_PI * old.frequency_hz * (t - old.start_s)
+        offset = 0.0
+        if amplitude_m > 0 and abs(d) <= amplitude_m:
+            phase = math.asin(d / amplitude_m)
+            if v < 0:
+                phase = math.pi - phase
+        else:
+            phase = old_phase
+            offset = d - amplitude_m * math.sin(phase)
+        period = 1.0 / frequency_hz if frequency_hz > 0 else (
+            1.0 / old.frequency_hz if old.frequency_hz > 0 else 0.0)
+        if period == 0.0:
+            offset = 0.0  # nothing was moving: d == 0 already
+        self._segments = [s for s in self._segments if s.start_s < t]
+        self._segments.append(_Segment(t, amplitude_m, frequency_hz, phase, offset, period))
+        self.amplitude_m, self.frequency_hz = amplitude_m, frequency_hz
+
+    def reset(self) -> None:
+        """Back to the motion given at construction, as at t = 0."""
+        amplitude_m, frequency_hz, phase_rad = self._initial
+        self._segments = [_Segment(0.0, amplitude_m, frequency_hz, phase_rad)]
+        self.amplitude_m, self.frequency_hz = amplitude_m, frequency_hz

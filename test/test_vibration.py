@@ -1,0 +1,62 @@
+"""The prescribed track motion: exact sinusoid, continuous displacement across commands."""
+
+import math
+
+import numpy as np
+import pytest
+
+from feeder_sim.vibration import Drive
+
+
+def test_motion_is_the_given_sinusoid():
+    d = Drive(np.array([1.0, 0.0]), amplitude_m=1e-3, frequency_hz=50.0, phase_rad=0.3)
+    for t in np.linspace(0, 0.1, 17):
+        w = 2 * math.pi * 50
+        x, v, a = d.motion(t)
+        assert x == pytest.approx(1e-3 * math.sin(w * t + 0.3), abs=1e-18)
+        assert v == pytest.approx(1e-3 * w * math.cos(w * t + 0.3), rel=1e-12, abs=1e-15)
+        assert a == pytest.approx(-1e-3 * w * w * math.sin(w * t + 0.3), rel=1e-12, abs=1e-12)
+
+
+@pytest.mark.parametrize('t_cmd', [0.0, 0.0031, 0.0113, 0.017])
+@pytest.mark.parametrize('amp, freq', [(2e-3, 50.0), (0.5e-3, 30.0), (0.0, 50.0), (1e-3, 0.0),
+                                       (0.2e-3, 120.0)])
+def test_command_keeps_displacement_continuous(t_cmd, amp, freq):
+    d = Drive(np.array([0.0, 1.0]), amplitude_m=1e-3, frequency_hz=50.0)
+    before = d.motion(t_cmd)
+    d.command(t_cmd, amp, freq)
+    after = d.motion(t_cmd)
+    assert after[0] == pytest.approx(before[0], abs=1e-15)
+    # continuity just after the switch, then the new motion
+    eps = 1e-9
+    assert abs(d.motion(t_cmd + eps)[0] - after[0]) <= abs(after[1]) * eps + 1e-12
+    if amp > 0 and freq > 0 and abs(before[0]) <= amp:
+        # the new sinusoid continues the old direction of travel
+        assert math.copysign(1, after[1]) == math.copysign(1, before[1]) or before[1] == 0
+    # after one period of the new (or old) frequency the motion is the pure new sinusoid
+    period = 1 / freq if freq > 0 else 1 / 50.0
+    t = t_cmd + 1.5 * period
+    x, _, _ = d.motion(t)
+    assert abs(x) <= amp + 1e-15
+
+
+def test_amplitude_zero_brings_the_track_to_rest():
+    d = Drive(np.array([1.0, 0.0]), amplitude_m=1e-3, frequency_hz=50.0)
+    d.command(0.004, 0.0, 50.0)
+    x, v, a = d.motion(0.004 + 0.02 + 1e-6)
+    assert (x, v, a) == (0.0, 0.0, 0.0)
+
+
+def test_invalid_command_is_rejected_and_nothing_changes():
+    d = Drive(np.array([1.0, 0.0]), amplitude_m=1e-3, frequency_hz=50.0)
+    for bad in [(math.nan, 50.0), (1e-3, math.inf), (-1e-3, 50.0), (1e-3, -1.0)]:
+        with pytest.raises(ValueError, match='amplitude_m and frequency_hz'):
+            d.command(0.01, *bad)
+    assert d.motion(0.013)[0] == pytest.approx(1e-3 * math.sin(2 * math.pi * 50 * 0.013))
+
+
+def test_reset_restores_the_initial_motion():
+    d = Drive(np.array([1.0, 0.0]), amplitude_m=1e-3, frequency_hz=50.0)
+    d.command(0.0, 2e-3, 10.0)
+    d.reset()
+    assert d.motion(0.005)[0] == pytest.approx(1e-3 * math.sin(2 * math.pi * 50 * 0.005))
