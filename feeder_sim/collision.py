@@ -1,0 +1,748 @@
+"""Collision detection for rigid polygonal bodies (vertex–edge contact model).
+
+Contact model (Kawachi et al.; Baraff 1989): every body is a compound of convex pieces and a
+contact is a *vertex* of one body against an *edge* of another.  An edge lying on an edge is
+represented by the two vertex–edge contacts of the end vertices that lie on the other edge.
+
+There is no fixed slop: gaps are exact to floating point and the only tolerances are the
+caller's ``margin`` / ``depth`` and a few tiny relative tolerances (``param_tol`` and
+``angle_tol``, both 1e-9 by default, plus rounding-level tie breaking).
+
+Pipeline of :func:`find_contacts`
+---------------------------------
+1. World coordinates of all vertices, exact per-piece AABBs (:func:`body_bounds`).
+2. Broad phase (:func:`candidate_pairs`): sort-and-sweep along the axis over which the piece
+   centres spread most, fully vectorised (``argsort`` + ``searchsorted`` + a CSR expansion), so
+   the cost is O(P log P + pairs overlapping on the sweep axis).
+3. Narrow phase, vectorised over all candidate pairs with the same vertex counts
+   (``(pairs, m_a, m_b)`` arrays), both directions (vertices of P against edges of Q and
+   vertices of Q against edges of P).  A vertex v is in contact with edge j of the other piece
+   when
+
+   * d_j(v) = n_j·(v − q_j) is the largest over that piece's edges (least-penetrated face;
+     among faces tied to rounding level the first one passing all tests is taken),
+   * ``-depth <= d_j(v) <= margin``,
+   * the projection parameter t lies in ``[-param_tol, 1 + param_tol]`` (the *unclipped* t is
+     stored in ``Contacts.edge_param``),
+   * v is a supporting vertex: for both neighbours u of v in its piece
+     n_j·(u − v) >= −max(margin, angle_tol·|u − v|), i.e. the piece lies on the far side of the
+     edge locally.  An exactly (or nearly) parallel adjacent edge therefore counts, so a box
+     resting flat yields both bottom corners.
+4. Clean-up (deterministic): contacts on parts of edges that are internal to a compound body
+   are removed, vertex-on-vertex pairs are reduced to one contact, duplicates of the same
+   body-frame vertex against parallel edges of one body are merged, and the result is sorted.
+
+Compound bodies (concave parts, segmented tracks)
+-------------------------------------------------
+:attr:`ShapeSet.derived` analyses the pieces of each body once:
+
+* A vertex is *active* (may be a contact vertex) only if it is a strictly convex corner of the
+  union of its body's pieces.  Vertices on a flat stretch (the seam vertices where two pieces
+  of a cup or a segmented track meet on the outer boundary, collinear vertices of a single
+  piece) and reflex corners are never contact vertices: an edge resting on such a flat
+  stretch is fully represented by the real corners at the ends.  Hence a vertex shared by two
+  pieces at a seam produces **no** contact at all (rather than one per piece); no
+  world-position de-duplication is needed for it.
+* Edge portions whose outer side is covered by another piece of the same body are
+  *internal*.  Fully internal edges take no part in the least-penetrated-face search and a
+  contact whose (clipped) projection falls on an internal portion is dropped.  This removes
+  phantom "walls" at seams of segmented tracks.
+* Vertices of different pieces of one body that coincide (relative tolerance 1e-10 of the
+  body size) share a canonical id.  Contacts of the same canonical vertex against edges of the
+  same body with parallel normals (angle < ``angle_tol``) are merged, keeping the smallest gap
+  (ties: lowest vertex index, then lowest edge index).
+
+Vertex on vertex
+----------------
+When a corner v of body A touches a corner w of body B, both "v against an edge of B ending
+at w" and "w against an edge of A ending at v" may qualify (both projection parameters
+within ``param_tol`` of the respective end).  Only one is kept: **the contact whose edge
+belongs to the lower-numbered body** (so its vertex belongs to the higher-numbered body).
+With a static track numbered first, the normal is then the track's.
+
+Ordering
+--------
+Contacts are sorted by body pair (min body, max body), then ``piece_a``, ``vertex_a``,
+``piece_b``, ``edge_b``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from functools import cached_property
+import math
+
+import numpy as np
+
+__all__ = [
+    "ANGLE_TOL",
+    "DEPTH_FRACTION",
+    "PARAM_TOL",
+    "Contacts",
+    "ShapeSet",
+    "ShapeTopology",
+    "body_bounds",
+    "candidate_pairs",
+    "evaluate_gaps",
+    "find_contacts",
+]
+
+#: Default tolerance on the edge parameter t (dimensionless).
+PARAM_TOL = 1e-9
+#: Default angular tolerance (rad) for "parallel" tests.
+ANGLE_TOL = 1e-9
+#: Default ``depth`` = DEPTH_FRACTION * the smaller minimum width of the two pieces.
+DEPTH_FRACTION = 0.25
+#: Relative (to the body's radius) tolerance for coincidence of body-frame features.
+_GEOM_REL_TOL = 1e-10
+#: Tie tolerance for the least-penetrated-face search, relative to the coordinate scale.
+_TIE_REL = 1e3 * np.finfo(float).eps
+
+_INT = np.intp
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a.setflags(write=False)
+    return a
+
+
+# --------------------------------------------------------------------------------------------
+# Shapes
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class ShapeTopology:
+    """Per-vertex / per-piece data derived from a :class:`ShapeSet` (computed once, lazily)."""
+
+    vertex_piece: np.ndarray  # (V,) piece owning each vertex
+    vertex_body: np.ndarray  # (V,) body owning each vertex
+    next_vertex: np.ndarray  # (V,) global index of the next vertex of the same piece
+    prev_vertex: np.ndarray  # (V,) global index of the previous vertex of the same piece
+    piece_size: np.ndarray  # (P,) number of vertices of each piece
+    edge_length: np.ndarray  # (V,) length of edge i (vertex i -> next_vertex[i])
+    piece_width: np.ndarray  # (P,) minimum width of each piece
+    vertex_active: np.ndarray  # (V,) bool: strictly convex corner of the body's union
+    edge_internal: np.ndarray  # (V,) bool: edge entirely covered by other pieces of its body
+    cover_start: np.ndarray  # (V+1,) CSR into cover_lo/cover_hi: internal portions of edge i
+    cover_lo: np.ndarray  # (c,) start parameter of an internal portion
+    cover_hi: np.ndarray  # (c,) end parameter of an internal portion
+    vertex_canon: np.ndarray  # (V,) lowest global index of a coincident vertex of the same body
+    max_edge_length: float
+
+
+@dataclass(frozen=True, eq=False)
+class ShapeSet:
+    """All convex pieces of all bodies, in each body's centre-of-mass frame."""
+
+    vertices: np.ndarray  # (V, 2) m; piece p is vertices[piece_start[p]:piece_start[p+1]], CCW
+    piece_start: np.ndarray  # (P+1,) int
+    piece_body: np.ndarray  # (P,) int, owning body index
+    normals: np.ndarray  # (V, 2) outward unit normal of the edge from vertex i to the next one
+    radius: np.ndarray  # (P,) max distance of the piece's vertices from its body's COM
+
+    def __post_init__(self) -> None:
+        v = np.asarray(self.vertices, dtype=float).reshape(-1, 2)
+        ps = np.asarray(self.piece_start, dtype=_INT).reshape(-1)
+        pb = np.asarray(self.piece_body, dtype=_INT).reshape(-1)
+        nm = np.asarray(self.normals, dtype=float).reshape(-1, 2)
+        rd = np.asarray(self.radius, dtype=float).reshape(-1)
+        if ps.size == 0 or ps[0] != 0 or ps[-1] != len(v):
+            raise ValueError("piece_start must start at 0 and end at len(vertices)")
+        if np.any(np.diff(ps) < 3):
+            raise ValueError("every piece needs at least 3 vertices")
+        if len(pb) != len(ps) - 1 or len(rd) != len(pb) or len(nm) != len(v):
+            raise ValueError("inconsistent ShapeSet array lengths")
+        if len(pb) and pb.min() < 0:
+            raise ValueError("negative body index")
+        for name, val in (("vertices", v), ("piece_start", ps), ("piece_body", pb),
+                          ("normals", nm), ("radius", rd)):
+            object.__setattr__(self, name, val)
+
+    @property
+    def n_pieces(self) -> int:
+        return len(self.piece_body)
+
+    @property
+    def n_bodies(self) -> int:
+        """1 + the largest body index that owns a piece (0 if there are no pieces)."""
+        return int(self.piece_body.max()) + 1 if len(self.piece_body) else 0
+
+    @classmethod
+    def from_pieces(cls, pieces_per_body: Sequence[Sequence[np.ndarray]]) -> ShapeSet:
+        """Build from ``pieces_per_body[b] = [piece, ...]``, each piece an (m, 2) convex polygon
+        already expressed in body b's centre-of-mass frame.
+
+        Clockwise pieces are reversed (stored CCW).  Collinear vertices are accepted (they are
+        never contact vertices); reflex vertices, repeated vertices, zero area and
+        self-overlapping vertex sequences raise ``ValueError``.  A body may have no pieces.
+        """
+        verts: list[np.ndarray] = []
+        norms: list[np.ndarray] = []
+        start = [0]
+        body: list[int] = []
+        radius: list[float] = []
+        memo: dict[tuple, tuple[np.ndarray, np.ndarray, float]] = {}
+        for b, pieces in enumerate(pieces_per_body):
+            for piece in pieces:
+                raw = np.array(piece, dtype=float)
+                key = (raw.shape, raw.tobytes())
+                if key not in memo:
+                    p = _check_convex_piece(raw)
+                    e = np.roll(p, -1, axis=0) - p
+                    length = np.hypot(e[:, 0], e[:, 1])
+                    memo[key] = (p, np.column_stack((e[:, 1], -e[:, 0])) / length[:, None],
+                                 float(np.hypot(p[:, 0], p[:, 1]).max()))
+                p, nm, r = memo[key]
+                verts.append(p)
+                norms.append(nm)
+                start.append(start[-1] + len(p))
+                body.append(b)
+                radius.append(r)
+        return cls(
+            vertices=_frozen(np.concatenate(verts) if verts else np.empty((0, 2))),
+            piece_start=_frozen(np.array(start, dtype=_INT)),
+            piece_body=_frozen(np.array(body, dtype=_INT)),
+            normals=_frozen(np.concatenate(norms) if norms else np.empty((0, 2))),
+            radius=_frozen(np.array(radius, dtype=float)),
+        )
+
+    @cached_property
+    def derived(self) -> ShapeTopology:
+        """Derived topology (next/prev vertex, active corners, internal edges, ...)."""
+        return _build_topology(self)
+
+
+def _check_convex_piece(p: np.ndarray) -> np.ndarray:
+    if p.ndim != 2 or p.shape[1] != 2 or len(p) < 3:
+        raise ValueError(f"a piece must be an (m>=3, 2) array, got shape {p.shape}")
+    if not np.all(np.isfinite(p)):
+        raise ValueError("piece vertices must be finite")
+    e = np.roll(p, -1, axis=0) - p
+    area2 = float(np.sum(p[:, 0] * np.roll(p[:, 1], -1) - np.roll(p[:, 0], -1) * p[:, 1]))
+    if area2 < 0:
+        p = p[::-1].copy()
+        e = np.roll(p, -1, axis=0) - p
+    length = np.hypot(e[:, 0], e[:, 1])
+    scale = float(np.abs(p).max())
+    if not area2 or np.any(length <= 1e-12 * scale):
+        raise ValueError("degenerate piece (zero area or repeated vertex)")
+    ein = np.roll(e, 1, axis=0)
+    cross = ein[:, 0] * e[:, 1] - ein[:, 1] * e[:, 0]
+    dot = ein[:, 0] * e[:, 0] + ein[:, 1] * e[:, 1]
+    if np.any(cross < -1e-12 * np.roll(length, 1) * length):
+        raise ValueError("piece is not convex (or not simple)")
+    turning = float(np.sum(np.arctan2(cross, dot)))
+    if abs(turning - 2 * math.pi) > 1e-6:
+        raise ValueError("piece is not a simple convex polygon")
+    return p
+
+
+def _circ_max_gap(angles: list[float]) -> float:
+    a = np.sort(np.mod(np.asarray(angles), 2 * math.pi))
+    gaps = np.diff(np.concatenate((a, [a[0] + 2 * math.pi])))
+    return float(gaps.max())
+
+
+def _build_topology(s: ShapeSet) -> ShapeTopology:
+    v, nrm, start = s.vertices, s.normals, s.piece_start
+    n_v, n_p = len(v), len(s.piece_body)
+    size = np.diff(start)
+    vertex_piece = np.repeat(np.arange(n_p, dtype=_INT), size)
+    vertex_body = s.piece_body[vertex_piece]
+    base = start[:-1][vertex_piece]
+    local = np.arange(n_v, dtype=_INT) - base
+    next_vertex = base + (local + 1) % size[vertex_piece]
+    prev_vertex = base + (local - 1) % size[vertex_piece]
+    e = v[next_vertex] - v
+    length = np.hypot(e[:, 0], e[:, 1])
+    ein = e[prev_vertex]
+    sin_turn = (ein[:, 0] * e[:, 1] - ein[:, 1] * e[:, 0]) / (length[prev_vertex] * length)
+    active = sin_turn > math.sin(ANGLE_TOL)
+
+    width = np.zeros(n_p)
+    for m in np.unique(size):
+        ps = np.flatnonzero(size == m)
+        idx = start[ps][:, None] + np.arange(m)
+        pv, pn = v[idx], nrm[idx]
+        # depth[g, j, i] = n_j . (q_j - v_i) >= 0
+        rel = pv[:, :, None, :] - pv[:, None, :, :]
+        depth = np.einsum("gjk,gjik->gji", pn, rel)
+        width[ps] = depth.max(axis=2).min(axis=1)
+
+    canon = np.arange(n_v, dtype=_INT)
+    internal = np.zeros(n_v, dtype=bool)
+    covers: list[tuple[int, float, float]] = []
+    body_pieces: dict[int, list[int]] = {}
+    for p, b in enumerate(s.piece_body.tolist()):
+        body_pieces.setdefault(b, []).append(p)
+    memo: dict[tuple, tuple] = {}  # identical compound bodies are analysed once
+    for pieces in body_pieces.values():
+        if len(pieces) < 2:
+            continue
+        tol = _GEOM_REL_TOL * max(float(s.radius[pieces].max()), np.finfo(float).tiny)
+        gidx = np.concatenate([np.arange(start[p], start[p + 1]) for p in pieces])
+        sizes = size[pieces]
+        bv, bn = v[gidx], nrm[gidx]
+        key = (tuple(sizes.tolist()), tol, bv.tobytes(), bn.tobytes())
+        if key not in memo:
+            memo[key] = _compound(bv, bn, np.concatenate(([0], np.cumsum(sizes))), tol,
+                                  active[gidx])
+        act, can, cov = memo[key]
+        active[gidx] = act
+        canon[gidx] = gidx[can]
+        covers.extend((int(gidx[i]), lo_, hi_) for i, lo_, hi_ in cov)
+    covers.sort()
+    cover_edge = np.array([c[0] for c in covers], dtype=_INT)
+    cover_lo = np.array([c[1] for c in covers], dtype=float)
+    cover_hi = np.array([c[2] for c in covers], dtype=float)
+    bounds = np.flatnonzero(np.diff(cover_edge)) + 1  # covers are sorted by (edge, lo)
+    for grp in np.split(np.arange(len(covers)), bounds) if covers else ():
+        reach = 0.0
+        for lo_, hi_ in zip(cover_lo[grp], cover_hi[grp], strict=True):
+            if lo_ > reach + PARAM_TOL:
+                break
+            reach = max(reach, hi_)
+        internal[cover_edge[grp[0]]] = reach >= 1.0 - PARAM_TOL
+    cover_start = np.zeros(n_v + 1, dtype=_INT)
+    np.add.at(cover_start, cover_edge + 1, 1)
+    cover_start = np.cumsum(cover_start)
+    return ShapeTopology(
+        vertex_piece=_frozen(vertex_piece),
+        vertex_body=_frozen(vertex_body),
+        next_vertex=_frozen(next_vertex),
+        prev_vertex=_frozen(prev_vertex),
+        piece_size=_frozen(size),
+        edge_length=_frozen(length),
+        piece_width=_frozen(width),
+        vertex_active=_frozen(active),
+        edge_internal=_frozen(internal),
+        cover_start=_frozen(cover_start),
+        cover_lo=_frozen(cover_lo),
+        cover_hi=_frozen(cover_hi),
+        vertex_canon=_frozen(canon),
+        max_edge_length=float(length.max()) if n_v else 0.0,
+    )
+
+
+def _compound(v, nrm, start, tol, active_in):
+    """Analyse one compound body given as local arrays (its pieces back to back).
+
+    Returns (active, canon, covers): active corners, canonical (lowest coincident) local
+    vertex indices, and internal edge portions as (local edge, t_lo, t_hi).
+    """
+    n_v = len(v)
+    active = active_in.copy()
+    canon = np.arange(n_v)
+    covers: list[tuple[int, float, float]] = []
+    n_p = len(start) - 1
+    piece_of = np.repeat(np.arange(n_p), np.diff(start))
+
+    def ang(vec):
+        return math.atan2(vec[1], vec[0])
+
+    for i in range(n_v):
+        p = piece_of[i]
+        a0, a1 = int(start[p]), int(start[p + 1])
+        x = v[i]
+        nxt = i + 1 if i + 1 < a1 else a0
+        prv = i - 1 if i > a0 else a1 - 1
+        gens = [ang(v[prv] - x), ang(v[nxt] - x)]
+        is_active = bool(active[i])
+        ev = v[nxt] - x
+        elen = math.hypot(ev[0], ev[1])
+        for q in range(n_p):
+            if q == p:
+                continue
+            b0, b1 = int(start[q]), int(start[q + 1])
+            qv, qn = v[b0:b1], nrm[b0:b1]
+            # -- vertex i against piece q: coincident vertex, outside, or inside/on an edge
+            if np.einsum("ij,ij->i", x - qv, qn).max() <= tol:
+                dist = np.hypot(qv[:, 0] - x[0], qv[:, 1] - x[1])
+                k = int(dist.argmin())
+                if dist[k] <= tol:
+                    canon[i] = min(canon[i], b0 + k)
+                    gens.append(ang(qv[k - 1] - qv[k]))
+                    gens.append(ang(qv[(k + 1) % (b1 - b0)] - qv[k]))
+                else:
+                    is_active = False  # inside q or on one of its edges: not a corner
+            # -- portion of edge i (x -> v[nxt]) whose outer side lies inside piece q
+            f0 = np.einsum("ij,ij->i", x - qv, qn)
+            f1 = qn @ ev
+            par = np.abs(f1) <= ANGLE_TOL * elen
+            col = par & (np.abs(f0) <= tol)
+            if np.any(col & (qn @ nrm[i] > 0)) or np.any(par & ~col & (f0 > 0)):
+                continue
+            cut = ~par
+            tstar = -f0[cut] / f1[cut]
+            up = f1[cut] > 0
+            hi_ = min(1.0, float(tstar[up].min())) if up.any() else 1.0
+            lo_ = max(0.0, float(tstar[~up].max())) if (~up).any() else 0.0
+            if hi_ - lo_ > PARAM_TOL:
+                covers.append((i, lo_, hi_))
+        if is_active:
+            is_active = _circ_max_gap(gens) > math.pi + ANGLE_TOL
+        active[i] = is_active
+    return active, canon, covers
+
+
+# --------------------------------------------------------------------------------------------
+# Contacts
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class Contacts:
+    """Vertex–edge contacts. Body a owns the vertex, body b owns the edge; the normal is the
+    edge's outward normal (points from b toward a)."""
+
+    body_a: np.ndarray  # (k,) int
+    piece_a: np.ndarray  # (k,) int
+    vertex_a: np.ndarray  # (k,) int, global index into ShapeSet.vertices
+    body_b: np.ndarray  # (k,) int
+    piece_b: np.ndarray  # (k,) int
+    edge_b: np.ndarray  # (k,) int, global index of the edge's first vertex
+    point: np.ndarray  # (k, 2) world position of the vertex, m
+    normal: np.ndarray  # (k, 2) world unit normal of the edge
+    gap: np.ndarray  # (k,) signed distance of the vertex from the edge's line, m (<0: penetration)
+    edge_param: np.ndarray  # (k,) unclipped projection parameter along the edge (0 = first vertex)
+
+    @property
+    def n(self) -> int:
+        return len(self.gap)
+
+    @staticmethod
+    def empty() -> Contacts:
+        i = np.empty(0, dtype=_INT)
+        return Contacts(i, i.copy(), i.copy(), i.copy(), i.copy(), i.copy(),
+                        np.empty((0, 2)), np.empty((0, 2)), np.empty(0), np.empty(0))
+
+    def take(self, index: np.ndarray) -> Contacts:
+        """Subset (or reordering) of the contacts selected by an index or boolean mask."""
+        return Contacts(*(np.asarray(getattr(self, f))[index] for f in _CONTACT_FIELDS))
+
+
+_CONTACT_FIELDS = ("body_a", "piece_a", "vertex_a", "body_b", "piece_b", "edge_b", "point",
+                   "normal", "gap", "edge_param")
+
+
+# --------------------------------------------------------------------------------------------
+# Geometry helpers (shared by find_contacts and evaluate_gaps so both give identical bits)
+# --------------------------------------------------------------------------------------------
+
+
+def _rotate(local: np.ndarray, c: np.ndarray, s: np.ndarray) -> np.ndarray:
+    x, y = local[..., 0], local[..., 1]
+    return np.stack((c * x - s * y, s * x + c * y), axis=-1)
+
+
+def _world(local: np.ndarray, pos: np.ndarray, c: np.ndarray, s: np.ndarray) -> np.ndarray:
+    x, y = local[..., 0], local[..., 1]
+    return np.stack((pos[..., 0] + (c * x - s * y), pos[..., 1] + (s * x + c * y)), axis=-1)
+
+
+def _check_state(shapes: ShapeSet, position, angle) -> tuple[np.ndarray, np.ndarray]:
+    position = np.asarray(position, dtype=float)
+    angle = np.asarray(angle, dtype=float)
+    if position.ndim != 2 or position.shape[1] != 2 or angle.shape != (len(position),):
+        raise ValueError("position must be (n, 2) and angle (n,)")
+    if len(position) < shapes.n_bodies:
+        raise ValueError(f"{shapes.n_bodies} bodies own pieces but only {len(position)} given")
+    return position, angle
+
+
+def _world_geometry(shapes: ShapeSet, position, angle):
+    position, angle = _check_state(shapes, position, angle)
+    vb = shapes.derived.vertex_body
+    c, s = np.cos(angle), np.sin(angle)
+    w = _world(shapes.vertices, position[vb], c[vb], s[vb])
+    nw = _rotate(shapes.normals, c[vb], s[vb])
+    return position, w, nw
+
+
+def _piece_aabb(w: np.ndarray, piece_start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    if len(piece_start) < 2:
+        return np.empty((0, 2)), np.empty((0, 2))
+    idx = piece_start[:-1]
+    return np.minimum.reduceat(w, idx, axis=0), np.maximum.reduceat(w, idx, axis=0)
+
+
+def _expand(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """CSR expansion: (owner, k) for k in range(counts[owner]), owner ascending."""
+    total = int(counts.sum())
+    owner = np.repeat(np.arange(len(counts), dtype=_INT), counts)
+    offset = np.arange(total, dtype=_INT) - np.repeat(np.cumsum(counts) - counts, counts)
+    return owner, offset
+
+
+# --------------------------------------------------------------------------------------------
+# Broad phase
+# --------------------------------------------------------------------------------------------
+
+
+def body_bounds(shapes: ShapeSet, position: np.ndarray,
+                angle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Exact world AABBs of every piece: ``(lo, hi)``, each (P, 2)."""
+    _, w, _ = _world_geometry(shapes, position, angle)
+    return _piece_aabb(w, shapes.piece_start)
+
+
+def candidate_pairs(lo: np.ndarray, hi: np.ndarray, piece_body: np.ndarray,
+                    collides: np.ndarray, margin: float, *,
+                    dynamic: np.ndarray | None = None) -> np.ndarray:
+    """Piece pairs ``(p, q)``, p < q, whose AABBs are within ``margin`` of each other.
+
+    Two boxes qualify when on both axes ``lo_p <= hi_q + margin`` and ``lo_q <= hi_p + margin``
+    (closed: touching boxes qualify).  Pieces of the same body are never paired.
+
+    ``collides`` (n_bodies,) bool.  Without ``dynamic`` it is the dynamic-body mask: a pair is
+    reported when at least one of its two bodies has ``collides`` True (so two static or
+    kinematic bodies are never paired).  With ``dynamic`` given, ``collides`` selects the bodies
+    that take part at all and a pair needs both bodies taking part and at least one dynamic.
+
+    Sort-and-sweep along the axis over which the AABB centres spread most (ties: x); the
+    result is sorted lexicographically.
+    """
+    lo = np.asarray(lo, dtype=float).reshape(-1, 2)
+    hi = np.asarray(hi, dtype=float).reshape(-1, 2)
+    body = np.asarray(piece_body, dtype=_INT).reshape(-1)
+    collides = np.asarray(collides, dtype=bool).reshape(-1)
+    margin = float(margin)
+    if not margin >= 0.0 or not math.isfinite(margin):
+        raise ValueError("margin must be finite and >= 0")
+    if lo.shape != hi.shape or len(body) != len(lo):
+        raise ValueError("lo, hi and piece_body must describe the same pieces")
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(lo <= hi)):
+        raise ValueError("bounds must be finite with lo <= hi")
+    out = np.empty((0, 2), dtype=_INT)
+    if len(body) < 2:
+        return out
+    if dynamic is None:
+        take = np.ones(len(body), dtype=bool)
+        dyn = collides[body]
+    else:
+        take = collides[body]
+        dyn = np.asarray(dynamic, dtype=bool).reshape(-1)[body] & take
+    if not dyn.any():
+        return out
+    ids = np.flatnonzero(take)
+    lo_t, hi_t = lo[ids], hi[ids]
+    centre = 0.5 * (lo_t + hi_t)
+    extent = centre.max(axis=0) - centre.min(axis=0)
+    axis = 1 if extent[1] > extent[0] else 0
+    other = 1 - axis
+    order = np.argsort(lo_t[:, axis], kind="stable")
+    ls, hs = lo_t[order, axis], hi_t[order, axis]
+    end = np.searchsorted(ls, hs + margin, side="right")
+    counts = end - np.arange(len(ls)) - 1
+    first, offset = _expand(counts)
+    a = ids[order[first]]
+    b = ids[order[first + 1 + offset]]
+    keep = ((lo[a, other] <= hi[b, other] + margin) & (lo[b, other] <= hi[a, other] + margin)
+            & (body[a] != body[b]) & (dyn[a] | dyn[b]))
+    a, b = a[keep], b[keep]
+    p, q = np.minimum(a, b), np.maximum(a, b)
+    o = np.lexsort((q, p))
+    return np.column_stack((p[o], q[o])).astype(_INT, copy=False)
+
+
+# --------------------------------------------------------------------------------------------
+# Narrow phase
+# --------------------------------------------------------------------------------------------
+
+
+def _vertices_vs_edges(iv, ie, w, nw, topo: ShapeTopology, margin, depth_g, tie_g,
+                       param_tol, angle_tol):
+    """Vertices ``iv`` (g, ma) of one piece against edges ``ie`` (g, mb) of the other.
+
+    Returns (vertex, edge, gap, edge_param) of the accepted contacts.
+    """
+    pv = w[iv]
+    q0 = w[ie]
+    n = nw[ie]
+    dx = pv[:, :, None, 0] - q0[:, None, :, 0]
+    dy = pv[:, :, None, 1] - q0[:, None, :, 1]
+    d = n[:, None, :, 0] * dx + n[:, None, :, 1] * dy  # (g, ma, mb)
+    internal = topo.edge_internal[ie]  # (g, mb)
+    dmax = np.where(internal[:, None, :], -np.inf, d).max(axis=2)  # (g, ma)
+    tie = tie_g[:, None]
+    # the selected face has dmax - tie <= d <= dmax: cull rows that cannot give a contact
+    g, k = np.nonzero((dmax - tie <= margin) & (dmax >= -depth_g[:, None])
+                      & topo.vertex_active[iv])
+    if len(g) == 0:
+        return (np.empty(0, dtype=_INT),) * 2 + (np.empty(0),) * 2
+    d, dx, dy = d[g, k], dx[g, k], dy[g, k]  # (r, mb)
+    ie_r, n_r, q0_r = ie[g], n[g], q0[g]
+    q1 = w[topo.next_vertex[ie_r]]
+    ex = q1[..., 0] - q0_r[..., 0]
+    ey = q1[..., 1] - q0_r[..., 1]
+    t = (dx * ex + dy * ey) / (ex * ex + ey * ey)
+    v_r = iv[g, k]
+    p_r = pv[g, k][:, None, :]
+    iprev = topo.prev_vertex[v_r]
+    u = w[iprev][:, None, :] - p_r
+    x = w[topo.next_vertex[v_r]][:, None, :] - p_r
+    nx, ny = n_r[..., 0], n_r[..., 1]
+    su = u[..., 0] * nx + u[..., 1] * ny
+    sx = x[..., 0] * nx + x[..., 1] * ny
+    slack_u = np.maximum(margin, angle_tol * topo.edge_length[iprev])[:, None]
+    slack_x = np.maximum(margin, angle_tol * topo.edge_length[v_r])[:, None]
+    valid = (~internal[g] & (d >= dmax[g, k][:, None] - tie[g])
+             & (t >= -param_tol) & (t <= 1.0 + param_tol)
+             & (su >= -slack_u) & (sx >= -slack_x))
+    j = np.where(valid, d, -np.inf).argmax(axis=1)
+    r = np.arange(len(j))
+    dsel, tsel = d[r, j], t[r, j]
+    keep = valid[r, j] & (dsel <= margin) & (dsel >= -depth_g[g])
+    return v_r[keep], ie_r[r, j][keep], dsel[keep], tsel[keep]
+
+
+def find_contacts(shapes: ShapeSet, position: np.ndarray, angle: np.ndarray,
+                  collides: np.ndarray, *, margin: float, depth: float | None = None,
+                  dynamic: np.ndarray | None = None, param_tol: float = PARAM_TOL,
+                  angle_tol: float = ANGLE_TOL) -> Contacts:
+    """All vertex–edge contacts with ``-depth <= gap <= margin`` (see the module docstring).
+
+    ``collides`` / ``dynamic``: as in :func:`candidate_pairs`.  ``depth`` defaults, per piece
+    pair, to ``DEPTH_FRACTION`` times the smaller of the two pieces' minimum widths.
+    """
+    margin = float(margin)
+    if not margin >= 0.0 or not math.isfinite(margin):
+        raise ValueError("margin must be finite and >= 0")
+    if depth is not None and not float(depth) >= 0.0:
+        raise ValueError("depth must be >= 0")
+    position, w, nw = _world_geometry(shapes, position, angle)
+    topo = shapes.derived
+    lo, hi = _piece_aabb(w, shapes.piece_start)
+    # widen by the edge-parameter tolerance so the broad phase never drops a narrow-phase hit
+    bp_margin = margin + 2.0 * param_tol * topo.max_edge_length
+    pairs = candidate_pairs(lo, hi, shapes.piece_body, collides, bp_margin, dynamic=dynamic)
+    if len(pairs) == 0:
+        return Contacts.empty()
+    pa, pb = pairs[:, 0], pairs[:, 1]
+    if depth is None:
+        depth_p = DEPTH_FRACTION * np.minimum(topo.piece_width[pa], topo.piece_width[pb])
+    else:
+        depth_p = np.full(len(pairs), float(depth))
+    body = shapes.piece_body
+    coord = np.abs(position).max(axis=1)
+    tie_p = _TIE_REL * (coord[body[pa]] + coord[body[pb]] + shapes.radius[pa]
+                        + shapes.radius[pb])
+    size = topo.piece_size
+    key = size[pa] * (int(size.max()) + 1) + size[pb]
+    parts = []
+    for k in np.unique(key):
+        sel = np.flatnonzero(key == k)
+        ia = shapes.piece_start[pa[sel]][:, None] + np.arange(size[pa[sel[0]]])
+        ib = shapes.piece_start[pb[sel]][:, None] + np.arange(size[pb[sel[0]]])
+        args = (w, nw, topo, margin, depth_p[sel], tie_p[sel], param_tol, angle_tol)
+        parts.append(_vertices_vs_edges(ia, ib, *args))
+        parts.append(_vertices_vs_edges(ib, ia, *args))
+    vert, edge, gap, t = (np.concatenate(c) for c in zip(*parts, strict=True))
+    keep = _not_internal(topo, edge, t, param_tol)
+    keep &= _vertex_vertex_keep(topo, vert, edge, t, len(shapes.vertices), param_tol)
+    vert, edge, gap, t = vert[keep], edge[keep], gap[keep], t[keep]
+    keep = _merge_duplicates(topo, vert, edge, gap, nw, angle_tol)
+    vert, edge, gap, t = vert[keep], edge[keep], gap[keep], t[keep]
+
+    body_a, body_b = topo.vertex_body[vert], topo.vertex_body[edge]
+    piece_a, piece_b = topo.vertex_piece[vert], topo.vertex_piece[edge]
+    o = np.lexsort((edge, piece_b, vert, piece_a, np.maximum(body_a, body_b),
+                    np.minimum(body_a, body_b)))
+    vert, edge = vert[o], edge[o]
+    return Contacts(body_a=body_a[o], piece_a=piece_a[o], vertex_a=vert,
+                    body_b=body_b[o], piece_b=piece_b[o], edge_b=edge,
+                    point=w[vert], normal=nw[edge], gap=gap[o], edge_param=t[o])
+
+
+def _not_internal(topo: ShapeTopology, edge, t, param_tol) -> np.ndarray:
+    """False for contacts whose clipped projection lies on an internal portion of the edge.
+
+    A portion is treated as open where it ends inside the edge (a concave corner of the
+    body: a contact exactly there is real) and closed where it reaches an end of the edge.
+    """
+    keep = np.ones(len(edge), dtype=bool)
+    counts = topo.cover_start[edge + 1] - topo.cover_start[edge]
+    if not counts.any():
+        return keep
+    owner, offset = _expand(counts)
+    iv = topo.cover_start[edge[owner]] + offset
+    tc = np.clip(t[owner], 0.0, 1.0)
+    lo, hi = topo.cover_lo[iv], topo.cover_hi[iv]
+    # open at boundaries inside the edge (a concave corner of the body: the contact there is
+    # real), closed where the internal portion reaches an end of the edge (a seam)
+    hit = (((tc > lo + param_tol) | (lo <= param_tol))
+           & ((tc < hi - param_tol) | (hi >= 1.0 - param_tol)))
+    keep[owner[hit]] = False
+    return keep
+
+
+def _vertex_vertex_keep(topo: ShapeTopology, vert, edge, t, n_vertices, param_tol):
+    """Drop one of each vertex-on-vertex pair (keep the edge of the lower-numbered body)."""
+    keep = np.ones(len(vert), dtype=bool)
+    end = np.where(np.abs(t) <= param_tol, edge,
+                   np.where(np.abs(t - 1.0) <= param_tol, topo.next_vertex[edge], -1))
+    cand = np.flatnonzero(end >= 0)
+    if len(cand) < 2:
+        return keep
+    cv, ce = topo.vertex_canon[vert[cand]], topo.vertex_canon[end[cand]]
+    matched = np.isin(ce * n_vertices + cv, cv * n_vertices + ce)
+    higher_edge = topo.vertex_body[edge[cand]] > topo.vertex_body[vert[cand]]
+    keep[cand[matched & higher_edge]] = False
+    return keep
+
+
+def _merge_duplicates(topo: ShapeTopology, vert, edge, gap, nw, angle_tol) -> np.ndarray:
+    """Merge contacts of one canonical vertex against parallel edges of one body."""
+    keep = np.ones(len(vert), dtype=bool)
+    if len(vert) < 2:
+        return keep
+    ba, cv, bb = topo.vertex_body[vert], topo.vertex_canon[vert], topo.vertex_body[edge]
+    o = np.lexsort((edge, vert, gap, bb, cv, ba))
+    same = (ba[o][1:] == ba[o][:-1]) & (cv[o][1:] == cv[o][:-1]) & (bb[o][1:] == bb[o][:-1])
+    if not same.any():
+        return keep
+    starts = np.flatnonzero(~np.concatenate(([False], same)))
+    ends = np.append(starts[1:], len(o))
+    for s0, s1 in zip(starts, ends, strict=True):
+        if s1 - s0 < 2:
+            continue
+        kept: list[int] = []
+        for c in o[s0:s1]:
+            n = nw[edge[c]]
+            for k in kept:
+                m = nw[edge[k]]
+                if n @ m > 0 and abs(n[0] * m[1] - n[1] * m[0]) <= angle_tol:
+                    keep[c] = False
+                    break
+            else:
+                kept.append(int(c))
+    return keep
+
+
+# --------------------------------------------------------------------------------------------
+# Re-evaluation of known features
+# --------------------------------------------------------------------------------------------
+
+
+def evaluate_gaps(shapes: ShapeSet, contacts: Contacts, position: np.ndarray,
+                  angle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(gap, edge_param)`` of the same vertex/edge features at another configuration.
+
+    Smooth in the configuration (no feature switching, no clipping); at the configuration
+    where ``contacts`` were found it reproduces their ``gap`` and ``edge_param`` bit for bit.
+    """
+    position, angle = _check_state(shapes, position, angle)
+    topo = shapes.derived
+    va = np.asarray(contacts.vertex_a, dtype=_INT)
+    eb = np.asarray(contacts.edge_b, dtype=_INT)
+    ba, bb = topo.vertex_body[va], topo.vertex_body[eb]
+    c, s = np.cos(angle), np.sin(angle)
+    p = _world(shapes.vertices[va], position[ba], c[ba], s[ba])
+    q0 = _world(shapes.vertices[eb], position[bb], c[bb], s[bb])
+    q1 = _world(shapes.vertices[topo.next_vertex[eb]], position[bb], c[bb], s[bb])
+    n = _rotate(shapes.normals[eb], c[bb], s[bb])
+    dx, dy = p[:, 0] - q0[:, 0], p[:, 1] - q0[:, 1]
+    ex, ey = q1[:, 0] - q0[:, 0], q1[:, 1] - q0[:, 1]
+    return n[:, 0] * dx + n[:, 1] * dy, (dx * ex + dy * ey) / (ex * ex + ey * ey)
