@@ -1,0 +1,214 @@
+"""Contact kinematics shared by the stepping methods: Jacobians, Delassus matrices, islands.
+
+For contact i the vertex body is ``a`` and the edge body is ``b``; ``n`` is the edge's outward
+normal (from b toward a) and ``t = perp(n)``. Relative contact velocity ``v = (v_N, v_T)`` is
+that of a's vertex with respect to b's material point under it; ``v_N < 0`` approaches.
+
+Rows of every contact LCP are ordered ``[N_0 .. N_{c-1}, T_0 .. T_{c-1}]`` before the friction
+rows a scene does not need are dropped (mu = 0, friction off, sliding contacts slaved to their
+normal), so a frictionless scene solves a c x c problem, never 2c x 2c.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from feeder_sim.collision import Contacts
+from feeder_sim.lcp import FrictionalLCP
+from feeder_sim.world import cross2, mix, perp, State, World
+
+# friction treatment of one contact row in an LCP
+NONE, BOX, SLAVED = 0, 1, 2
+
+
+@dataclass
+class ContactSet:
+    """Contacts at one configuration with their lever arms and material."""
+
+    contacts: Contacts
+    tangent: np.ndarray     # (k, 2)
+    r_a: np.ndarray         # (k, 2) contact point relative to a's centre of mass
+    r_b: np.ndarray         # (k, 2)
+    mu_static: np.ndarray   # (k,)
+    mu_dynamic: np.ndarray  # (k,)
+    restitution: np.ndarray  # (k,)
+
+    @property
+    def n(self) -> int:
+        return self.contacts.n
+
+    def subset(self, idx: np.ndarray) -> ContactSet:
+        c = self.contacts
+        sub = Contacts(*(getattr(c, f)[idx] for f in _CONTACT_FIELDS))
+        return ContactSet(sub, self.tangent[idx], self.r_a[idx], self.r_b[idx],
+                          self.mu_static[idx], self.mu_dynamic[idx], self.restitution[idx])
+
+
+_CONTACT_FIELDS = ('body_a', 'piece_a', 'vertex_a', 'body_b', 'piece_b', 'edge_b', 'point',
+                   'normal', 'gap', 'edge_param')
+
+
+def contact_set(world: World, state: State, contacts: Contacts) -> ContactSet:
+    a, b = contacts.body_a, contacts.body_b
+    return ContactSet(
+        contacts=contacts,
+        tangent=perp(contacts.normal),
+        r_a=contacts.point - state.position[a],
+        r_b=contacts.point - state.position[b],
+        mu_static=mix(world.mu_static[a], world.mu_static[b], 'friction'),
+        mu_dynamic=mix(world.mu_dynamic[a], world.mu_dynamic[b], 'friction'),
+        restitution=mix(world.restitution[a], world.restitution[b], 'restitution'),
+    )
+
+
+def point_velocity(state: State, body: np.ndarray, r: np.ndarray) -> np.ndarray:
+    return state.velocity[body] + state.omega[body][:, None] * perp(r)
+
+
+def relative_velocity(cs: ContactSet, state: State) -> tuple[np.ndarray, np.ndarray]:
+    """Normal and tangential relative velocity (m/s) of every contact."""
+    c = cs.contacts
+    rel = point_velocity(state, c.body_a, cs.r_a) - point_velocity(state, c.body_b, cs.r_b)
+    return np.sum(rel * c.normal, 1), np.sum(rel * cs.tangent, 1)
+
+
+def islands(world: World, cs: ContactSet) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Groups of dynamic bodies that touch each other, with their contacts.
+
+    Static and kinematic bodies do not join islands: their motion is known, so two parts
+    touching only the track are solved apart. Returns (bodies, contact indices) per island
+    that has at least one contact.
+    """
+    n = world.n
+    parent = np.arange(n)
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    dyn = world.dynamic
+    a, b = cs.contacts.body_a, cs.contacts.body_b
+    for i, j in zip(a[dyn[a] & dyn[b]], b[dyn[a] & dyn[b]]):
+        ri, rj = find(int(i)), find(int(j))
+        if ri != rj:
+            parent[max(ri, rj)] = min(ri, rj)
+    owner = np.where(dyn[a], a, b)
+    roots = np.array([find(int(i)) for i in owner], dtype=int)
+    out = []
+    for root in np.unique(roots):
+        idx = np.flatnonzero(roots == root)
+        bodies = np.unique(np.concatenate([a[idx], b[idx]]))
+        out.append((bodies[dyn[bodies]], idx))
+    return out
+
+
+@dataclass
+class IslandJacobian:
+    """Contact Jacobian of one island over its dynamic bodies' (vx, vy, omega) columns."""
+
+    bodies: np.ndarray     # (nb,) dynamic body indices, column block order
+    J: np.ndarray          # (2c, 3nb) rows N_0..N_{c-1}, T_0..T_{c-1}
+    inv_mass: np.ndarray   # (3nb,) diagonal of M^-1
+
+    def delassus(self) -> np.ndarray:
+        return (self.J * self.inv_mass) @ self.J.T
+
+    def velocity_change(self, impulse: np.ndarray) -> np.ndarray:
+        """(nb, 3) change of (vx, vy, omega) from stacked contact impulses (2c,)."""
+        return (self.inv_mass * (self.J.T @ impulse)).reshape(-1, 3)
+
+
+def island_jacobian(world: World, cs: ContactSet, bodies: np.ndarray) -> IslandJacobian:
+    c = cs.contacts
+    k = c.n
+    col = np.full(world.n, -1)
+    col[bodies] = np.arange(len(bodies))
+    J = np.zeros((2 * k, 3 * len(bodies)))
+    rows = np.arange(k)
+    for body, r, sign in ((c.body_a, cs.r_a, 1.0), (c.body_b, cs.r_b, -1.0)):
+        cb = col[body]
+        m = cb >= 0
+        base = 3 * cb[m]
+        for direction, row0 in ((c.normal, 0), (cs.tangent, k)):
+            rr = rows[m] + row0
+            J[rr, base] += sign * direction[m, 0]
+            J[rr, base + 1] += sign * direction[m, 1]
+            J[rr, base + 2] += sign * cross2(r[m], direction[m])
+    inv_mass = np.stack([world.inv_mass[bodies], world.inv_mass[bodies],
+                         world.inv_inertia[bodies]], 1).reshape(-1)
+    return IslandJacobian(bodies, J, inv_mass)
+
+
+@dataclass
+class Assembly:
+    """A contact LCP and the map from its unknowns back to stacked contact impulses."""
+
+    problem: FrictionalLCP
+    P: np.ndarray            # (2c, m): impulses_full = P @ x
+    friction: np.ndarray     # (c,) NONE / BOX / SLAVED
+    box_rows: np.ndarray     # contact index of each BOX friction row
+    extra: dict = field(default_factory=dict)
+
+    def full(self, x: np.ndarray) -> np.ndarray:
+        return self.P @ x
+
+
+def assemble(W: np.ndarray, b_full: np.ndarray, friction: np.ndarray, mu_lo: np.ndarray,
+             mu_hi: np.ndarray, slave: np.ndarray | None = None) -> Assembly:
+    """Build the boxed LCP ``w = A x + b`` from the full 2c x 2c problem.
+
+    ``friction[i]`` decides contact i's tangential unknown: NONE drops it (mu = 0 or friction
+    off), BOX keeps a row with bounds ``[-mu_lo x_N, mu_hi x_N]``, SLAVED fixes it to
+    ``slave[i] * x_N`` (sliding contact in the force problem) and changes x_N's column instead.
+    """
+    c = len(friction)
+    box = np.flatnonzero(friction == BOX)
+    m = c + len(box)
+    P = np.zeros((2 * c, m))
+    P[np.arange(c), np.arange(c)] = 1.0
+    P[c + box, c + np.arange(len(box))] = 1.0
+    slaved = np.flatnonzero(friction == SLAVED)
+    if len(slaved):
+        P[c + slaved, slaved] = slave[slaved]
+    rows = np.concatenate([np.arange(c), c + box])
+    A = W[rows] @ P
+    normal_of = np.concatenate([np.full(c, -1), box])
+    lo = np.concatenate([np.zeros(c), mu_lo[box]])
+    hi = np.concatenate([np.zeros(c), mu_hi[box]])
+    problem = FrictionalLCP(A=A, b=b_full[rows], normal_of=normal_of, mu_lo=lo, mu_hi=hi)
+    return Assembly(problem, P, friction, box)
+
+
+@dataclass
+class SolverStats:
+    """Counters every stepping method keeps; written to the run summary."""
+
+    steps: int = 0
+    lcp_solves: int = 0
+    trivial_solves: int = 0
+    pivots: int = 0
+    fallbacks: int = 0
+    unconverged: int = 0
+    max_residual: float = 0.0
+    max_penetration_m: float = 0.0
+    impacts: int = 0
+    events: int = 0
+    energy_fixes: int = 0
+    messages: list = field(default_factory=list)
+
+    def record(self, result) -> None:
+        self.lcp_solves += 1
+        self.trivial_solves += result.method == 'trivial'
+        self.pivots += result.pivots
+        self.fallbacks += result.fallbacks
+        self.unconverged += not result.converged
+        self.max_residual = max(self.max_residual, float(result.residual))
+        if result.message and len(self.messages) < 20:
+            self.messages.append(result.message)
+
+    def as_dict(self) -> dict:
+        return {k: v for k, v in self.__dict__.items()}

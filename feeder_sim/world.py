@@ -1,0 +1,202 @@
+"""The simulated world: bodies as arrays (struct of arrays) and the state that evolves.
+
+A :class:`World` is built once from a :class:`~feeder_sim.scene.Scene` and does not change while
+the simulation runs (except the vibration drives, which take commands). A :class:`State` holds
+what the stepping methods change: time, centre-of-mass positions, angles and velocities of every
+body. Static and kinematic bodies have rows in the state too; their rows are written from the
+prescribed motion, never integrated.
+
+Poses in the state are those of each body's centre of mass; scene files and published poses use
+the body frame of the scene file, related by ``origin = com - R(angle) @ com_local``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+
+import numpy as np
+
+from feeder_sim.collision import ShapeSet
+from feeder_sim.geometry import mass_properties
+from feeder_sim.scene import Scene
+from feeder_sim.vibration import Drive
+
+STATIC, KINEMATIC, DYNAMIC = 0, 1, 2
+BODY_TYPES = {'static': STATIC, 'kinematic': KINEMATIC, 'dynamic': DYNAMIC}
+
+
+def rot(theta: np.ndarray | float) -> np.ndarray:
+    """Rotation matrices for angles (rad): shape (2, 2) or (n, 2, 2)."""
+    c, s = np.cos(theta), np.sin(theta)
+    return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+
+
+def cross2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """z component of a x b for stacks of 2-vectors."""
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+
+
+def perp(v: np.ndarray) -> np.ndarray:
+    """v rotated by +90 degrees; also omega x v for unit omega about z."""
+    return np.stack([-v[..., 1], v[..., 0]], -1)
+
+
+@dataclass
+class State:
+    """Everything that changes in time. Units: s, m, rad, m/s, rad/s."""
+
+    t: float
+    position: np.ndarray   # (n, 2) centre of mass, world frame
+    angle: np.ndarray      # (n,)
+    velocity: np.ndarray   # (n, 2)
+    omega: np.ndarray      # (n,)
+
+    def copy(self) -> State:
+        return State(self.t, self.position.copy(), self.angle.copy(), self.velocity.copy(),
+                     self.omega.copy())
+
+
+def mix(a: np.ndarray, b: np.ndarray, rule: str) -> np.ndarray:
+    """Material value of a contact from the values of its two bodies.
+
+    Friction uses the geometric mean (a frictionless coating makes the pair frictionless, as in
+    Box2D); restitution the larger value. Equal inputs give exactly that value.
+    """
+    if rule == 'friction':
+        out = np.sqrt(a * b)
+    else:
+        out = np.maximum(a, b)
+    return np.where(a == b, a, out)
+
+
+@dataclass
+class World:
+    """Bodies of one scene, as arrays indexed by body number (scene-file order)."""
+
+    scene: Scene
+    names: tuple[str, ...]
+    body_type: np.ndarray      # (n,) STATIC / KINEMATIC / DYNAMIC
+    mass: np.ndarray           # (n,) kg; inf for static and kinematic bodies
+    inertia: np.ndarray        # (n,) kg m^2 about the centre of mass
+    inv_mass: np.ndarray       # (n,) 1/kg; 0 for non-dynamic bodies
+    inv_inertia: np.ndarray    # (n,)
+    com_local: np.ndarray      # (n, 2) centre of mass in the scene-file body frame
+    shapes: ShapeSet
+    mu_static: np.ndarray
+    mu_dynamic: np.ndarray
+    restitution: np.ndarray
+    gravity: np.ndarray        # (2,) m/s^2
+    base_position: np.ndarray  # (n, 2) centre of mass at zero drive displacement
+    base_angle: np.ndarray     # (n,)
+    drives: tuple[Drive | None, ...]
+    track_index: int | None    # body whose x axis is "along the track" in reports
+
+    @classmethod
+    def from_scene(cls, scene: Scene) -> World:
+        n = len(scene.bodies)
+        body_type = np.array([BODY_TYPES[b.type] for b in scene.bodies], dtype=np.int8)
+        mass = np.full(n, np.inf)
+        inertia = np.full(n, np.inf)
+        com_local = np.zeros((n, 2))
+        pieces_com = []
+        drives: list[Drive | None] = []
+        for i, body in enumerate(scene.bodies):
+            props = mass_properties(body.pieces, mass=body.mass, density=body.density) \
+                if body.type == 'dynamic' else mass_properties(body.pieces, density=1.0)
+            com_local[i] = props.centroid
+            if body.type == 'dynamic':
+                mass[i], inertia[i] = props.mass, props.inertia
+            pieces_com.append([np.asarray(p, float) - props.centroid for p in body.pieces])
+            vib = body.vibration
+            if vib is not None:
+                theta = body.pose[2] + vib.angle
+                drives.append(Drive(np.array([math.cos(theta), math.sin(theta)]),
+                                    vib.amplitude, vib.frequency, vib.phase))
+            else:
+                drives.append(None)
+        pose = np.array([b.pose for b in scene.bodies], dtype=float).reshape(n, 3)
+        base_position = pose[:, :2] + np.einsum('nij,nj->ni', rot(pose[:, 2]), com_local)
+        dynamic = body_type == DYNAMIC
+        track_index = scene.bodies.index(
+            next(b for b in scene.bodies if b.name == scene.track)) if scene.track else None
+        return cls(
+            scene=scene,
+            names=tuple(b.name for b in scene.bodies),
+            body_type=body_type,
+            mass=mass,
+            inertia=inertia,
+            inv_mass=np.where(dynamic, 1.0 / mass, 0.0),
+            inv_inertia=np.where(dynamic, 1.0 / inertia, 0.0),
+            com_local=com_local,
+            shapes=ShapeSet.from_pieces(pieces_com),
+            mu_static=np.array([b.mu_static for b in scene.bodies], float),
+            mu_dynamic=np.array([b.mu_dynamic for b in scene.bodies], float),
+            restitution=np.array([b.restitution for b in scene.bodies], float),
+            gravity=np.asarray(scene.gravity, float),
+            base_position=base_position,
+            base_angle=pose[:, 2].copy(),
+            drives=tuple(drives),
+            track_index=track_index,
+        )
+
+    @property
+    def n(self) -> int:
+        return len(self.names)
+
+    @property
+    def dynamic(self) -> np.ndarray:
+        return self.body_type == DYNAMIC
+
+    @property
+    def driven(self) -> np.ndarray:
+        """Indices of bodies that have a vibration drive."""
+        return np.array([i for i, d in enumerate(self.drives) if d is not None], dtype=int)
+
+    def initial_state(self) -> State:
+        velocity = np.array([b.velocity for b in self.scene.bodies], float).reshape(self.n, 3)
+        state = State(0.0, self.base_position.copy(), self.base_angle.copy(),
+                      np.where(self.dynamic[:, None], velocity[:, :2], 0.0),
+                      np.where(self.dynamic, velocity[:, 2], 0.0))
+        self.apply_prescribed_motion(state)
+        return state
+
+    def prescribed_acceleration(self, t: float) -> np.ndarray:
+        """(n, 2) acceleration of driven bodies at time t (zero elsewhere)."""
+        acc = np.zeros((self.n, 2))
+        for i in self.driven:
+            _, _, a = self.drives[i].motion(t)
+            acc[i] = a * self.drives[i].direction
+        return acc
+
+    def apply_prescribed_motion(self, state: State) -> None:
+        """Write the positions and velocities of driven bodies at ``state.t`` into ``state``."""
+        for i in self.driven:
+            d, v, _ = self.drives[i].motion(state.t)
+            u = self.drives[i].direction
+            state.position[i] = self.base_position[i] + d * u
+            state.velocity[i] = v * u
+
+    def body_frame_pose(self, state: State) -> tuple[np.ndarray, np.ndarray]:
+        """Scene-file body frame origins (n, 2) and angles (n,) for a state."""
+        origin = state.position - np.einsum('nij,nj->ni', rot(state.angle), self.com_local)
+        return origin, state.angle.copy()
+
+    def track_frame(self) -> tuple[np.ndarray, np.ndarray]:
+        """Origin and unit x axis of the track body at rest (world frame)."""
+        if self.track_index is None:
+            return np.zeros(2), np.array([1.0, 0.0])
+        i = self.track_index
+        theta = self.base_angle[i]
+        return self.base_position[i], np.array([math.cos(theta), math.sin(theta)])
+
+    def kinetic_energy(self, state: State) -> float:
+        """J, dynamic bodies only."""
+        dyn = self.dynamic
+        return float(0.5 * np.sum(self.mass[dyn] * np.sum(state.velocity[dyn] ** 2, axis=1))
+                     + 0.5 * np.sum(self.inertia[dyn] * state.omega[dyn] ** 2))
+
+    def potential_energy(self, state: State) -> float:
+        """J, gravity on dynamic bodies, zero at the world origin."""
+        dyn = self.dynamic
+        return float(-np.sum(self.mass[dyn] * (state.position[dyn] @ self.gravity)))
