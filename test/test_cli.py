@@ -1,0 +1,87 @@
+"""feeder-sim run: the MCAP it writes, read back by mcap-ros2-support, the summary, errors."""
+
+import json
+import math
+import subprocess
+import sys
+
+from mcap_ros2.reader import read_ros2_messages
+import numpy as np
+import pytest
+
+from feeder_sim.cli import main
+from feeder_sim.simulator import Simulator
+
+
+def test_run_writes_mcap_summary_and_plot(tmp_path):
+    mcap = tmp_path / 'run.mcap'
+    summary = tmp_path / 'run.json'
+    rc = main(['-q', 'run', 'track_one_box', '--duration', '0.2', '--record', str(mcap),
+               '--summary', str(summary), '--publish-rate', '50'])
+    assert rc == 0
+    assert (tmp_path / 'run.png').stat().st_size > 1000
+    msgs = {}
+    for m in read_ros2_messages(str(mcap)):
+        msgs.setdefault(m.channel.topic, []).append(m)
+    assert {t: len(v) for t, v in msgs.items()} == {
+        '/clock': 10, '/feeder_sim/part_poses': 10, '/feeder_sim/contacts': 10,
+        '/feeder_sim/track_state': 10, '/vibration_cmd': 1}
+    stamps = [m.ros_msg.header.stamp for m in msgs['/feeder_sim/part_poses']]
+    assert [s.sec * 10**9 + s.nanosec for s in stamps] == [20_000_000 * k for k in range(1, 11)]
+    assert list(msgs['/vibration_cmd'][0].ros_msg.data) == pytest.approx([3.5e-4, 50.0])
+    # the recorded pose equals, bit for bit, what the simulator computes on the same schedule
+    sim = Simulator('track_one_box')
+    for k in range(1, 11):
+        sim.advance(0.02 * k)
+    _, origin, angle = sim.part_poses()
+    last = msgs['/feeder_sim/part_poses'][-1].ros_msg.poses[0]
+    assert last.position.x == origin[0, 0] and last.position.y == origin[0, 1]
+    assert 2 * math.atan2(last.orientation.z, last.orientation.w) == pytest.approx(angle[0],
+                                                                                abs=1e-15)
+    data = json.loads(summary.read_text())
+    assert data['scene'] == 'track_one_box' and data['method'] == 'event_driven'
+    s_end = sim.track_coordinates()[0][0]
+    s0 = Simulator('track_one_box').track_coordinates()[0][0]
+    assert data['parts'][0]['mean_velocity_along_track_mps'] == pytest.approx(
+        (s_end - s0) / 0.2, rel=1e-12)
+    assert sim.stats.events > 0 and data['solver']['events'] == sim.stats.events
+    assert data['solver']['fallbacks'] == 0
+
+
+def test_contacts_carry_the_weight(tmp_path):
+    # A box resting on a static floor: over each 10 ms frame the normal impulses sum to m g dt.
+    mcap = tmp_path / 'rest.mcap'
+    scene = tmp_path / 'rest.yaml'
+    scene.write_text("""
+name: rest
+solver: {method: event_driven}
+bodies:
+  - {name: floor, type: static, polygon: [[-1, -0.1], [1, -0.1], [1, 0], [-1, 0]],
+     pose: [0, 0, 0], mu_static: 0.5}
+  - {name: box, type: dynamic, polygon: [[-0.01, -0.005], [0.01, -0.005], [0.01, 0.005],
+     [-0.01, 0.005]], mass: 0.01, pose: [0, 0.005, 0], mu_static: 0.5}
+""")
+    assert main(['-q', 'run', str(scene), '--duration', '0.05', '--record', str(mcap)]) == 0
+    frames = [m.ros_msg for m in read_ros2_messages(str(mcap), topics=['/feeder_sim/contacts'])]
+    assert len(frames) == 5
+    for cloud in frames:
+        fields = [f.name for f in cloud.fields]
+        assert fields[:7] == ['x', 'y', 'z', 'normal_x', 'normal_y', 'normal_impulse',
+                              'tangent_impulse']
+        pts = np.frombuffer(bytes(cloud.data), dtype=np.float32).reshape(cloud.width, -1)
+        assert cloud.width == 2
+        assert pts[:, 5].sum() == pytest.approx(0.01 * 9.81 * 0.01, rel=1e-6)
+        assert np.allclose(pts[:, 6], 0.0, atol=1e-12)
+
+
+@pytest.mark.parametrize('args, message', [
+    (['run', 'no_such_scene', '--duration', '1'], 'no_such_scene'),
+    (['run', 'track_one_box', '--duration', '-1'], 'duration'),
+    (['run', 'track_one_box', '--duration', '0.01', '--publish-rate', 'nan'], 'publish rate'),
+])
+def test_bad_input_is_one_clear_line(args, message):
+    proc = subprocess.run([sys.executable, '-m', 'feeder_sim.cli', *args],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    assert 'Traceback' not in proc.stderr
+    assert message in proc.stderr

@@ -1,0 +1,48 @@
+"""A 20 x 10 mm box on a vibrating track against the point-mass table (reference section 4.3).
+
+The flat box lands on both bottom corners at once and never rotates, so it conveys like the
+point mass of the reference: dimensionless mean speed V = v_m omega / (g cos theta), measured
+over whole cycles after the start-up transient.
+"""
+
+import math
+
+import pytest
+
+from feeder_sim.builders import build, conveyor
+from feeder_sim.simulator import Simulator
+
+G = 9.81
+
+# (psi deg, mu, theta deg, Gamma) -> V from the reference table (40 + 40 cycles, 4 digits)
+TABLE = [
+    ((20, 0.5, 0, 1.2), 1.284),
+    ((20, 0.5, 3, 0.8), 0.491),
+    ((20, 0.8, 3, 1.5), 2.160),
+    ((30, 0.5, 0, 0.5), 0.262),
+    ((30, 0.8, 3, 1.2), 1.307),
+    ((30, 0.8, 0, 2.0), 3.196),
+]
+
+
+def mean_speed(psi, mu, theta, gamma, *, method='event_driven', warmup=20, cycles=20, **kw):
+    f = 50.0
+    sim = Simulator(build(conveyor(psi=math.radians(psi), mu=mu, theta=math.radians(theta),
+                                   gamma=gamma, frequency_hz=f, method=method, **kw)))
+    sim.advance(warmup / f)
+    s1 = sim.track_coordinates()[0][0]
+    sim.advance((warmup + cycles) / f)
+    s2 = sim.track_coordinates()[0][0]
+    v = (s2 - s1) * f / cycles
+    return v * 2 * math.pi * f / (G * math.cos(math.radians(theta))), sim
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize('case, expected', TABLE)
+def test_event_driven_matches_point_mass_table(case, expected):
+    V, sim = mean_speed(*case)
+    # 0.3 % is the issue's bound; the table itself is rounded to 4 digits (<= 0.1 %).
+    assert V == pytest.approx(expected, rel=3e-3)
+    assert sim.stats.fallbacks == 0
+    # the box stays flat on the track: it behaves as the point mass
+    assert abs(sim.state.angle[1] - math.radians(case[2])) < 1e-9
