@@ -3,22 +3,47 @@
 Between events the bodies move smoothly under gravity, prescribed track motion and contact
 forces. The contact *mode* — which contacts press (normal force, zero normal acceleration),
 which stick (zero tangential acceleration) and which slide (friction ``-sigma mu_d f_N``) — is
-chosen by Baraff's frictional force LCP at the start of a phase and then held, so the motion is
-smooth and a Dormand–Prince 5(4) integrator with error control follows it accurately. Each
-phase watches event functions; the first one to cross zero ends the phase at the located time:
+chosen by Baraff's frictional force LCP at the start of a phase and then held. Each phase
+watches event functions; the first one to cross zero ends the phase at the located time:
 
-======================  ==========================================  ========================
-event                   function that must stay >= 0                 what happens
-======================  ==========================================  ========================
-collision               gap of a nearby vertex-edge pair             impulse LCP (Kawachi)
-lift-off / tipping      normal force of a pressing contact           new force LCP
-stick -> slip           mu_s sum f_N - |sum f_T| of a sticking group new force LCP
-slip -> stick/reverse   sigma v_T of a sliding contact              new force LCP
-sliding off an edge     edge parameter in [0, 1]                    new contact detection
-======================  ==========================================  ========================
+=====================  ============================================  =====================
+event                  function that must stay >= 0                  what happens
+=====================  ============================================  =====================
+collision              distance of a corner outside a nearby piece   impulse LCP (Kawachi)
+lift-off / tipping     normal force of a pressing contact            new force LCP
+stick -> slip          mu_s sum f_N - |sum f_T| of a sticking group  new force LCP
+slip -> stick/reverse  sigma v_T of a sliding contact                new force LCP
+sliding off an edge    edge parameter in [0, 1]                      new contact detection
+=====================  ============================================  =====================
 
-Parallel contacts between the same two bodies (an edge lying on an edge) share their loads in a
-way rigid-body mechanics leaves open, so friction is tested on the group's totals. When the
+Phases are followed in one of two ways:
+
+* **Closed form**, when every dynamic body either flies free (no held contact) or translates
+  without turning against static or sinusoidally driven bodies, touching them only with its
+  own vertices (a box lying, sticking or sliding on a track). The held mode's equations are
+  then linear with constant coefficients in gravity and the drives' accelerations ``s(t)``, so
+  one least-squares solve at the phase start gives every body's acceleration
+  ``phi0 + phi1 s(t)`` and every contact force ``f0 + f1 s(t)``; positions, velocities,
+  forces and the transmitted impulses follow exactly from the drives' sinusoids. Nothing is
+  integrated: the events are evaluated at the ends of steps of the largest step size and a
+  crossing is located by Illinois regula falsi on the exact state.
+* **Integrated** otherwise (a body rotating on a corner, bodies pressing on each other): a
+  Dormand–Prince 5(4) integrator with error control follows the held mode, and an event is
+  located by Illinois regula falsi on full integrator steps from the step start. The
+  right-hand side (contact geometry, Jacobian, the held mode's least-squares forces, event
+  functions) and the steps are compiled; while a drive blends after a command it is not a
+  plain sinusoid, and a Python right-hand side that asks the drives takes over.
+
+The kernels are in :mod:`feeder_sim._ed_kernels`. Candidate collisions are the active corners
+of every piece against every other piece whose bounding box lay within a margin when they were
+detected; they are detected again only when a body may have moved half that margin since (in
+closed form from a bound on the exact velocities, when integrating from a heuristic reach per
+step). The impulse and force LCPs first try the final active set of the last pivoting solve of
+a problem of the same shape and keep it when the LCP residual accepts it: the events of a
+periodic motion pose nearly the same problems every cycle.
+
+Parallel contacts between the same two bodies (an edge lying on an edge) share their loads in
+a way rigid-body mechanics leaves open, so friction is tested on the group's totals. When the
 force LCP has no solution (Painlevé configurations) the contact takes an impulse without
 collision, as Baraff and the reference recommend.
 """
@@ -30,29 +55,34 @@ import math
 
 import numpy as np
 
+from feeder_sim import _ed_kernels as kern
 from feeder_sim import lcp
 from feeder_sim.collision import Contacts, evaluate_gaps, find_contacts
 from feeder_sim.dynamics import (
-    assemble,
     BOX,
     contact_set,
     ContactSet,
     island_jacobian,
     islands,
     NONE,
-    relative_velocity,
     SLAVED,
     SolverStats,
 )
 from feeder_sim.scene import SolverSpec
 from feeder_sim.time_stepping import friction_rows, StepContacts
-from feeder_sim.world import perp, rot, State, World
+from feeder_sim.world import mix, perp, rot, State, World
 
-STICK, SLIDE = 1, 2
+STICK, SLIDE = kern.STICK, kern.SLIDE
+assert (BOX, SLAVED) == (kern.BOX_ROW, kern.SLAVED_ROW)
 # Event functions are scaled to O(1); one fires when it drops below -_EVENT_THRESHOLD, so a
 # function that starts a phase at zero (a contact that just separated) does not fire on noise.
 _EVENT_THRESHOLD = 1e-9
 _GAP_SCALE_M = 1e-3   # gaps fire at -1e-12 m
+# A body counts as not turning when its rotation moves its points by less than this fraction of
+# the slip tolerance (impacts on a flat leave ~1e-16 m/s of round-off spin) and the held mode
+# gives it no angular acceleration beyond round-off (relative to g over its radius).
+_SPIN_FRACTION = 1e-3
+_ALPHA_REL = 1e-12
 
 # Dormand–Prince 5(4) tableau (Dormand & Prince 1980); the 5th-order row is also the FSAL row.
 _C = np.array([0.0, 1 / 5, 3 / 10, 4 / 5, 8 / 9, 1.0, 1.0])
@@ -81,6 +111,48 @@ class EventSettings:
 
 
 @dataclass
+class _Candidates:
+    """Active corners that may enter a nearby piece of another body (collision events)."""
+
+    vertex: np.ndarray        # (c,) global vertex index
+    piece: np.ndarray         # (c,) piece the vertex may enter
+    arrays: tuple             # kernel arrays: vertex body, local coords, piece body, start, end
+    anchor_pos: np.ndarray    # (n, 2) poses at detection
+    anchor_ang: np.ndarray    # (n,)
+    margin: float             # bounding boxes farther apart than this were left out
+    t: float                  # detection time
+
+    @property
+    def n(self) -> int:
+        return len(self.vertex)
+
+    def without(self, held: Contacts, n_pieces: int) -> _Candidates:
+        """Leave out the corners held on an edge of the piece: they stay on its boundary,
+        watched by their own events."""
+        if not held.n or not self.n:
+            return self
+        keep = ~np.isin(self.vertex * n_pieces + self.piece,
+                        held.vertex_a * n_pieces + held.piece_b)
+        return _Candidates(self.vertex[keep], self.piece[keep],
+                           tuple(x[keep] for x in self.arrays), self.anchor_pos,
+                           self.anchor_ang, self.margin, self.t)
+
+
+@dataclass
+class _Phase:
+    """Kernel arrays of a closed-form phase (see :mod:`feeder_sim._ed_kernels`)."""
+
+    kind: np.ndarray          # (n,) FIXED / DRIVEN / MOVING
+    index: np.ndarray         # (n,) drive of a DRIVEN body
+    phi0: np.ndarray          # (n, 2) acceleration without drive terms
+    phi1: np.ndarray          # (n, 2, nd) acceleration per unit drive acceleration
+    drives: tuple             # (u, base position, amplitude, omega, phase at t_ref, t_ref)
+    contacts: tuple           # held contacts: geometry, force coefficients, friction state
+    f0: np.ndarray            # (2k,) contact forces without drive terms
+    f1: np.ndarray            # (2k, nd)
+
+
+@dataclass
 class _Mode:
     """The contact mode held during one smooth phase."""
 
@@ -88,7 +160,12 @@ class _Mode:
     friction: np.ndarray      # (k,) NONE / STICK / SLIDE
     sigma: np.ndarray         # (k,) slip direction of sliding contacts
     group: np.ndarray         # (k,) parallel-contact group id
-    candidates: Contacts      # nearby inactive vertex-edge pairs (collision events)
+    material: tuple           # (mu_static, mu_dynamic, restitution) of each contact
+    held: tuple               # kernel arrays of the held contacts (forces filled by a phase)
+    n_events: int             # event functions besides the candidate collisions
+    candidates: _Candidates | None = None
+    phase: _Phase | None = None   # closed-form description, if the mode has one
+    spec: tuple | None = None     # compiled right-hand side, when integrated and supported
 
 
 def _with_geometry(world: World, features: Contacts, state: State) -> ContactSet:
@@ -105,10 +182,12 @@ def _with_geometry(world: World, features: Contacts, state: State) -> ContactSet
     return contact_set(world, state, moved)
 
 
-def _select(c: Contacts, idx: np.ndarray) -> Contacts:
-    return Contacts(*(getattr(c, f)[idx] for f in (
-        'body_a', 'piece_a', 'vertex_a', 'body_b', 'piece_b', 'edge_b', 'point', 'normal',
-        'gap', 'edge_param')))
+def _relative_velocity(cs: ContactSet, state: State) -> tuple[np.ndarray, np.ndarray]:
+    """Normal and tangential relative velocity of every contact, as
+    :func:`feeder_sim.dynamics.relative_velocity` gives them."""
+    c = cs.contacts
+    return kern.relative_velocity(c.normal, cs.r_a, cs.r_b, c.body_a, c.body_b, state.velocity,
+                                  state.omega)
 
 
 def _groups(cs: ContactSet) -> np.ndarray:
@@ -139,10 +218,13 @@ class EventDriven:
         self.rtol = spec.tolerance
         dyn = np.flatnonzero(world.dynamic)
         self._dyn = dyn
+        sh = world.shapes
         radius = np.zeros(world.n)
-        np.maximum.at(radius, world.shapes.piece_body, world.shapes.radius)
+        np.maximum.at(radius, sh.piece_body, sh.radius)
+        self._radius = radius
         length = float(np.max(radius[dyn], initial=1e-2))
         g = float(np.linalg.norm(world.gravity)) or 9.81
+        self._g = g
         speed = math.sqrt(g * length)
         for i in world.driven:
             d = world.drives[i]
@@ -152,9 +234,34 @@ class EventDriven:
                                       np.full(2 * nd, speed), np.full(nd, speed / length)])
         self._force_scale = float(np.max(world.mass[dyn] * g, initial=1.0))
         self._speed = speed
+        self._length = length
         self._mode: _Mode | None = None
         self._h = spec.time_step
         self._pending: list[StepContacts] = []
+        self._patterns: dict[tuple, np.ndarray] = {}
+        # Candidate collisions of closed-form phases before the held contacts are left out;
+        # kept across events while no body can have moved half their margin.
+        self._near: _Candidates | None = None
+        self._drives: tuple | None = None     # (drive parameters, _drive_model's answer)
+        topo = sh.derived
+        self._verts = np.ascontiguousarray(sh.vertices, dtype=float)
+        self._normals = np.ascontiguousarray(sh.normals, dtype=float)
+        self._next_vertex = topo.next_vertex
+        self._vertex_body = topo.vertex_body
+        self._vertex_piece = topo.vertex_piece
+        self._active_vertex = np.flatnonzero(topo.vertex_active)
+        self._piece_start = sh.piece_start
+        self._piece_body = sh.piece_body
+        pair = np.indices((world.n, world.n)).reshape(2, -1)
+        self._materials = tuple(
+            mix(values[pair[0]], values[pair[1]], rule).reshape(world.n, world.n)
+            for values, rule in ((world.mu_static, 'friction'), (world.mu_dynamic, 'friction'),
+                                 (world.restitution, 'restitution')))
+        none_i, none_f, none_v = np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 2))
+        self._no_contacts = (none_i, none_i, none_v, none_v, none_v, none_v, none_f,
+                             np.zeros((0, 0)), none_i, none_f, none_f, none_i, 0)
+        self._out = (np.zeros((world.n, 2)), np.zeros(world.n), np.zeros((world.n, 2)),
+                     np.zeros(world.n))
 
     # ----------------------------------------------------------------- state <-> vector
     def _pack(self, s: State) -> np.ndarray:
@@ -200,10 +307,25 @@ class EventDriven:
                                alpha[self._dyn]])
         return dydt, aux
 
+    def _mode_system(self, cs: ContactSet):
+        """The held mode's equations: bodies, J, M^-1 and the square system A x = -b[rows]
+        whose solution x gives the stacked contact forces P x."""
+        w, mode = self.world, self._mode
+        c = cs.contacts
+        k = c.n
+        bodies = np.unique(np.concatenate([c.body_a, c.body_b]))
+        bodies = bodies[w.dynamic[bodies]]
+        J, minv, W = self._jacobian(cs, bodies)
+        friction = np.where(mode.friction == STICK, BOX,
+                            np.where(mode.friction == SLIDE, SLAVED, NONE))
+        slave = -mode.sigma * cs.mu_dynamic
+        A, P, rows, _, _, _ = kern.reduce_lcp(W, friction.astype(np.int64), np.zeros(k),
+                                              np.zeros(k), slave)
+        return bodies, J, minv, A, P, rows
+
     def _contact_forces(self, cs: ContactSet, s: State, acc: np.ndarray,
                         alpha: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Forces of the held mode; adds their effect to acc and alpha in place."""
-        w, mode = self.world, self._mode
         c = cs.contacts
         k = c.n
         a, b = c.body_a, c.body_b
@@ -216,18 +338,10 @@ class EventDriven:
         pb = acc[b] - (s.omega[b] ** 2)[:, None] * cs.r_b
         b_n = np.sum((pa - pb) * c.normal, 1) + 2 * s.omega[b] * np.sum(rel * cs.tangent, 1)
         b_t = np.sum((pa - pb) * cs.tangent, 1) - 2 * s.omega[b] * np.sum(rel * c.normal, 1)
-        bodies = np.unique(np.concatenate([a, b]))
-        bodies = bodies[w.dynamic[bodies]]
-        jac = island_jacobian(w, cs, bodies)
-        W = jac.delassus()
-        friction = np.where(mode.friction == STICK, BOX,
-                            np.where(mode.friction == SLIDE, SLAVED, NONE))
-        slave = -mode.sigma * cs.mu_dynamic
-        asm = assemble(W, np.concatenate([b_n, b_t]), friction, np.zeros(k), np.zeros(k),
-                       slave)
-        x = np.linalg.lstsq(asm.problem.A, -asm.problem.b, rcond=1e-12)[0]
-        f = asm.full(x)
-        dv = jac.velocity_change(f)
+        bodies, J, minv, A, P, rows = self._mode_system(cs)
+        x = np.linalg.lstsq(A, -np.concatenate([b_n, b_t])[rows], rcond=1e-12)[0]
+        f = P @ x
+        dv = (minv * (J.T @ f)).reshape(-1, 3)
         acc[bodies] += dv[:, :2]
         alpha[bodies] += dv[:, 2]
         return f[:k], f[k:], v_t
@@ -257,29 +371,51 @@ class EventDriven:
 
     def _gap_values(self, s: State) -> np.ndarray:
         cand = self._mode.candidates
-        if not cand.n:
-            return np.zeros(0)
-        gap, param = evaluate_gaps(self.world.shapes, cand, s.position, s.angle)
-        # Only a vertex over its edge can hit it; elsewhere the line's extension is irrelevant.
-        on_edge = (param > -1e-9) & (param < 1 + 1e-9)
-        return np.where(on_edge, gap, np.maximum(gap, 0.0)) / _GAP_SCALE_M
+        out = np.empty(cand.n)
+        if cand.n:
+            kern.candidate_gaps(s.position, s.angle, *cand.arrays, self._verts, self._normals,
+                                out)
+        return out / _GAP_SCALE_M
 
-    def _all_events(self, t: float, y: np.ndarray, scratch: State) -> tuple[np.ndarray, dict]:
-        _, aux = self._rhs(t, y, scratch)
-        return np.concatenate([self._event_values(aux), self._gap_values(scratch)]), aux
+    def _events_of(self, aux: dict, scratch: State) -> tuple[np.ndarray, np.ndarray]:
+        """Event functions and stacked forces of a Python right-hand side evaluation."""
+        g = np.concatenate([self._event_values(aux), self._gap_values(scratch)])
+        return g, (np.concatenate([aux['f_n'], aux['f_t']]) if aux else np.zeros(0))
+
+    def _evaluate(self, t: float, y: np.ndarray,
+                  scratch: State) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(dy/dt, event functions, stacked contact forces)`` of the held mode at (t, y)."""
+        mode = self._mode
+        if mode.spec is not None:
+            return kern.mode_rhs(t, y, self._spec(), mode.n_events + mode.candidates.n,
+                                 *self._out)
+        dydt, aux = self._rhs(t, y, scratch)
+        return (dydt, *self._events_of(aux, scratch))
 
     # ------------------------------------------------------------------ integration
-    def _dopri_step(self, t: float, y: np.ndarray, h: float, k0: np.ndarray,
-                    scratch: State) -> tuple[np.ndarray, float, np.ndarray]:
+    def _dopri_step(self, t: float, y: np.ndarray, h: float, k0: np.ndarray, scratch: State):
+        """Dormand–Prince step: ``(y_new, error norm, dy/dt, events, forces)``, the last three
+        at the step's end (first same as last)."""
+        mode = self._mode
+        if mode.spec is not None:
+            return kern.dopri_step(t, y, h, k0, self._spec(), mode.n_events + mode.candidates.n,
+                                   self.rtol * self._scale, *self._out)
         ks = [k0]
+        aux: dict = {}
         for i in range(1, 7):
             yi = y + h * sum(a * k for a, k in zip(_A[i], ks))
-            ks.append(self._rhs(t + _C[i] * h, yi, scratch)[0])
+            k, aux = self._rhs(t + _C[i] * h, yi, scratch)
+            ks.append(k)
         y_new = y + h * sum(b * k for b, k in zip(_B5[:6], ks[:6]))
         err_vec = h * sum(e * k for e, k in zip(_E, ks))
         err = float(np.sqrt(np.mean((err_vec / (self.rtol * self._scale)) ** 2))) \
             if len(y) else 0.0
-        return y_new, err, ks[6]
+        return (y_new, err, ks[6], *self._events_of(aux, scratch))
+
+    def _spec(self) -> tuple:
+        """The compiled right-hand side's arguments with the current candidates."""
+        mode = self._mode
+        return mode.spec[:12] + (mode.candidates.arrays,) + mode.spec[12:]
 
     def advance(self, state: State, t_end: float) -> list[StepContacts]:
         """Integrate ``state`` in place to ``t_end``; returns the contact impulses transmitted."""
@@ -291,24 +427,11 @@ class EventDriven:
             t_stop = t_end
             for i in self.world.driven:
                 t_stop = min(t_stop, self.world.drives[i].next_change_after(state.t))
-            h = min(self._h, self.h_max(), t_stop - state.t)
-            t0 = state.t
-            y0 = self._pack(state)
-            self._refresh_candidates(state, h)
-            k0, aux0 = self._rhs(t0, y0, scratch)
-            g0 = np.concatenate([self._event_values(aux0), self._gap_values(scratch)])
-            while True:
-                y1, err, k1 = self._dopri_step(t0, y0, h, k0, scratch)
-                if err <= 1.0 or h < 1e-14:
-                    break
-                h *= max(0.2, 0.9 * err ** -0.2)
-            g1, aux1 = self._all_events(t0 + h, y1, scratch)
-            hit = (g1 < -_EVENT_THRESHOLD) & (g0 >= -_EVENT_THRESHOLD)
-            factor = 5.0 if err == 0 else min(5.0, max(0.2, 0.9 * err ** -0.2))
-            if hit.any():
-                tau, y_ev, aux_ev = self._locate(t0, y0, k0, h, g0, g1, aux1, y1, hit, scratch)
-                self._accumulate_forces(aux0, aux_ev, tau)
-                self._unpack(t0 + tau, y_ev, state)
+            if self._mode.phase is not None:
+                hit = self._follow_closed_form(state, t_stop)
+            else:
+                hit = self._integrate_step(state, t_stop, scratch)
+            if hit:
                 self._mode = None
                 self.stats.events += 1
                 events_here = events_here + 1 if state.t - last_event_t < 1e-12 else 0
@@ -316,30 +439,52 @@ class EventDriven:
                 if events_here > self.settings.max_events_at_one_time:
                     self._give_way(state, scratch)
                     events_here = 0
-                self._h = max(h, 1e-9)
                 continue
-            self._accumulate_forces(aux0, aux1, h)
-            self._unpack(t0 + h, y1, state)
-            self._h = min(h * factor, self.h_max())
-            self.stats.steps += 1
             if state.t >= t_stop - 1e-15 and t_stop < t_end:
                 self._mode = None   # the drive's acceleration has a kink here
         out, self._pending = self._pending, []
         return out
 
+    def _integrate_step(self, state: State, t_stop: float, scratch: State) -> bool:
+        """One Dormand–Prince step of the held mode (or up to its first event)."""
+        h = min(self._h, self.h_max(), t_stop - state.t)
+        t0 = state.t
+        y0 = self._pack(state)
+        self._refresh_candidates(state, h)
+        k0, g0, f0 = self._evaluate(t0, y0, scratch)
+        while True:
+            y1, err, k1, g1, f1 = self._dopri_step(t0, y0, h, k0, scratch)
+            if err <= 1.0 or h < 1e-14:
+                break
+            h *= max(0.2, 0.9 * err ** -0.2)
+        hit = (g1 < -_EVENT_THRESHOLD) & (g0 >= -_EVENT_THRESHOLD)
+        factor = 5.0 if err == 0 else min(5.0, max(0.2, 0.9 * err ** -0.2))
+        if hit.any():
+            tau, y_ev, f_ev = self._locate(t0, y0, k0, h, g0, g1, f1, y1, hit, scratch)
+            self._unpack(t0 + tau, y_ev, state)
+            self._accumulate_forces(f0, f_ev, tau, state)
+            self._h = max(h, 1e-9)
+            return True
+        self._unpack(t0 + h, y1, state)
+        self._accumulate_forces(f0, f1, h, state)
+        self._h = min(h * factor, self.h_max())
+        self.stats.steps += 1
+        return False
+
     def _locate(self, t0: float, y0: np.ndarray, k0: np.ndarray, h: float, g0: np.ndarray,
-                g1: np.ndarray, aux1: dict, y1: np.ndarray, hit: np.ndarray,
-                scratch: State) -> tuple[float, np.ndarray, dict]:
+                g1: np.ndarray, f1: np.ndarray, y1: np.ndarray, hit: np.ndarray,
+                scratch: State) -> tuple[float, np.ndarray, np.ndarray]:
         """Earliest time in (0, h] at which a hit event function reaches its threshold.
 
         Illinois regula falsi on tau -> g(step(y0, tau)), bracketing the earliest crossing of
         any hit function: every trial is a full integrator step from the phase start, so the
-        event state is as accurate as a normal step. Returns the state just past the crossing.
+        event state is as accurate as a normal step. Returns the state just past the crossing
+        and the contact forces there.
         """
         lo, hi = 0.0, h
         g_lo = g0[hit] + _EVENT_THRESHOLD
         g_hi = g1[hit] + _EVENT_THRESHOLD
-        best = (h, y1, aux1)
+        best = (h, y1, f1)
         side = 0
         for _ in range(100):
             if hi - lo <= 1e-15 * max(1.0, abs(t0)) + 1e-16:
@@ -349,11 +494,10 @@ class EventDriven:
             f = float(np.min(frac))
             tau = lo + min(max(f, 1e-3), 1 - 1e-3) * (hi - lo) if np.isfinite(f) else \
                 0.5 * (lo + hi)
-            y_t, _, _ = self._dopri_step(t0, y0, tau, k0, scratch)
-            g_t_all, aux_t = self._all_events(t0 + tau, y_t, scratch)
+            y_t, _, _, g_t_all, f_t = self._dopri_step(t0, y0, tau, k0, scratch)
             g_t = g_t_all[hit] + _EVENT_THRESHOLD
             if (g_t < 0).any():
-                hi, g_hi, best = tau, g_t, (tau, y_t, aux_t)
+                hi, g_hi, best = tau, g_t, (tau, y_t, f_t)
                 if side == -1:
                     g_lo = g_lo * 0.5
                 side = -1
@@ -368,176 +512,465 @@ class EventDriven:
         """Many events at one instant: let the mode run a tiny step to break the tie."""
         self.stats.messages.append(f'event cascade at t={state.t:.9f}s; stepped past it')
         self._settle(state)
+        self._refresh_candidates(state, 1e-9)
         y = self._pack(state)
-        k0, _ = self._rhs(state.t, y, scratch)
-        y1, _, _ = self._dopri_step(state.t, y, 1e-9, k0, scratch)
+        k0 = self._evaluate(state.t, y, scratch)[0]
+        y1 = self._dopri_step(state.t, y, 1e-9, k0, scratch)[0]
         self._unpack(state.t + 1e-9, y1, state)
         self._mode = None
 
-    def _accumulate_forces(self, aux0: dict, aux1: dict, h: float) -> None:
-        if not aux0 or not aux1:
+    def _accumulate_forces(self, f0: np.ndarray, f1: np.ndarray, h: float,
+                           state: State) -> None:
+        """Impulses of the held contacts over a step (trapezoid rule), ending at ``state``."""
+        if not f0.size or not f1.size:
             return
-        p_n = 0.5 * h * (aux0['f_n'] + aux1['f_n'])
-        p_t = 0.5 * h * (aux0['f_t'] + aux1['f_t'])
-        self._pending.append(StepContacts(aux1['cs'], p_n, p_t))
+        k = len(f0) // 2
+        p = 0.5 * h * (f0 + f1)
+        self._pending.append(StepContacts(self._contacts_at(state.position, state.angle),
+                                          p[:k], p[k:]))
 
-    def _refresh_candidates(self, state: State, h: float) -> None:
+    # ------------------------------------------------------------------ closed-form phases
+    def _follow_closed_form(self, state: State, t_stop: float) -> bool:
+        """Move the state along the held mode's exact motion to t_stop or its first event."""
+        mode, ph = self._mode, self._mode.phase
+        if self._near is None:
+            self._near = self._find_candidates(state, self._closed_form_margin())
+        if mode.candidates is None:
+            mode.candidates = self._near.without(mode.features, len(self._piece_body))
+        pos, ang, vel, om = self._out
+        dvel = np.zeros(len(ph.drives[2]))
+        t0 = state.t
+        for _ in range(64):
+            cand = mode.candidates
+            bodies = (ph.kind, ph.index, state.position, state.angle, state.velocity,
+                      state.omega, ph.phi0, ph.phi1)
+            reach = (cand.anchor_pos, cand.anchor_ang, self._radius, 0.5 * cand.margin)
+            status, t_new, steps = kern.advance(
+                t0, t_stop, self.h_max(), _EVENT_THRESHOLD, mode.n_events + cand.n, bodies,
+                ph.drives, ph.contacts, cand.arrays, self._verts, self._normals,
+                (self._force_scale, self._speed, _GAP_SCALE_M), reach, pos, ang, vel, om,
+                dvel)
+            self.stats.steps += steps
+            if status == kern.REFRESH and t_new == t0:
+                # Detected at another configuration, or a single step can outrun the margin.
+                grow = 2.0 if cand.t == t0 else 1.0
+                self._near = self._find_candidates(state, grow * cand.margin)
+                mode.candidates = self._near.without(mode.features, len(self._piece_body))
+                continue
+            break
+        else:
+            mode.phase = None    # no finite speed bound: integrate instead
+            mode.spec = self._compiled_rhs(state)
+            return False
+        if ph.f0.size:
+            impulse = ph.f0 * (t_new - t0) + ph.f1 @ dvel
+            k = len(impulse) // 2
+            self._pending.append(StepContacts(self._contacts_at(pos, ang), impulse[:k],
+                                              impulse[k:]))
+        d = self._dyn
+        state.t = t_new
+        state.position[d] = pos[d]
+        state.angle[d] = ang[d]
+        state.velocity[d] = vel[d]
+        state.omega[d] = om[d]
+        self.world.apply_prescribed_motion(state)
+        if status == kern.REFRESH:
+            self._near = self._find_candidates(state, cand.margin)
+            mode.candidates = self._near.without(mode.features, len(self._piece_body))
+        return status == kern.EVENT
+
+    def _contacts_at(self, pos: np.ndarray, ang: np.ndarray) -> ContactSet:
+        """The held contacts at the configuration (pos, ang), built without re-detection."""
+        mode = self._mode
+        f = mode.features
+        point, normal, gap, param = kern.held_geometry(pos, ang, *mode.held[:6])
+        c = Contacts(f.body_a, f.piece_a, f.vertex_a, f.body_b, f.piece_b, f.edge_b, point,
+                     normal, gap, param)
+        return ContactSet(c, normal[:, ::-1] * (-1.0, 1.0), point - pos[f.body_a],
+                          point - pos[f.body_b], *mode.material)
+
+    def _closed_form_margin(self) -> float:
+        amplitude = max((self.world.drives[i].amplitude_m for i in self.world.driven),
+                        default=0.0)
+        return 4.0 * self._length + 4.0 * amplitude
+
+    def _drive_model(self, t: float) -> tuple | None:
+        """Body kinds and drive arrays of closed-form phases, or None while a drive blends.
+
+        Kept while the drives' amplitudes and frequencies stay, so that every phase follows
+        one and the same sinusoid per drive (a command resets the stepper)."""
         w = self.world
+        key = tuple((w.drives[i].amplitude_m, w.drives[i].frequency_hz) for i in w.driven)
+        if any(w.drives[i].next_change_after(t) < math.inf for i in w.driven):
+            return None   # a command blend: not a plain sinusoid
+        if self._drives is not None and self._drives[0] == key:
+            return self._drives[1]
+        n = w.n
+        kind = np.where(w.dynamic, kern.MOVING, kern.FIXED).astype(np.int64)
+        index = np.full(n, -1, dtype=np.int64)
+        u, base, amp, omega, phase = [], [], [], [], []
+        for i in w.driven:
+            drive = w.drives[i]
+            d, v, _ = drive.motion(t)
+            a, om = drive.amplitude_m, 2.0 * math.pi * drive.frequency_hz
+            if a == 0.0 or om == 0.0:
+                continue      # at rest
+            # The drive is A sin(phase + omega (t - t_ref)) from its current phase on.
+            sn, cs = d / a, v / (a * om)
+            if abs(math.hypot(sn, cs) - 1.0) > 1e-9:
+                return None
+            kind[i], index[i] = kern.DRIVEN, len(amp)
+            u.append(drive.direction)
+            base.append(w.base_position[i])
+            amp.append(a)
+            omega.append(om)
+            phase.append(math.atan2(sn, cs))
+        nd = len(amp)
+        drives = (np.array(u, dtype=float).reshape(nd, 2),
+                  np.array(base, dtype=float).reshape(nd, 2), np.array(amp, dtype=float),
+                  np.array(omega, dtype=float), np.array(phase, dtype=float), float(t))
+        phi0 = np.zeros((n, 2))
+        phi0[w.dynamic] = w.gravity
+        none_i, none_f = np.zeros(0, np.int64), np.zeros(0)
+        none_v = np.zeros((0, 2))
+        f1 = np.zeros((0, nd))
+        free = _Phase(kind, index, phi0, np.zeros((n, 2, nd)), drives,
+                      (none_i, none_i, none_v, none_v, none_v, none_v, none_f, f1, none_i,
+                       none_f, none_f, none_i, 0), none_f, f1)
+        self._drives = (key, (index, drives, free))
+        return self._drives[1]
+
+    def _closed_form(self, state: State, cs: ContactSet | None) -> _Phase | None:
+        """The held mode's exact motion, if it has the closed form (module docstring).
+
+        ``cs`` are the held contacts at ``state`` (None when there are none)."""
+        w, mode, st = self.world, self._mode, self.settings
+        model = self._drive_model(state.t)
+        if model is None:
+            return None
+        index, drives, free = model
+        c = mode.features
+        k = c.n
+        if not k:
+            return free
+        a, b = c.body_a, c.body_b
+        if not (w.dynamic[a].all() and not w.dynamic[b].any()):
+            return None
+        bodies, J, minv, A, P, rows = self._mode_system(cs)
+        spin = np.abs(state.omega[bodies]) * self._radius[bodies]
+        if np.any(spin > _SPIN_FRACTION * st.slip_tol_mps):
+            return None
+        nd = len(drives[2])
+        # Right-hand sides of the held mode per unit source: gravity, then each drive's
+        # acceleration (the edge bodies are not dynamic, so only they carry drives).
+        rel = np.zeros((k, 2, 1 + nd))
+        rel[:, :, 0] = w.gravity
+        for i in np.flatnonzero(index[b] >= 0):
+            rel[i, :, 1 + index[b[i]]] = -drives[0][index[b[i]]]
+        rhs = np.concatenate([np.einsum('kj,kjc->kc', c.normal, rel),
+                              np.einsum('kj,kjc->kc', cs.tangent, rel)])
+        x = np.linalg.lstsq(A, -rhs[rows], rcond=1e-12)[0]
+        f = P @ x
+        dv = (minv[:, None] * (J.T @ f)).reshape(len(bodies), 3, 1 + nd)
+        alpha_scale = _ALPHA_REL * self._g / self._radius[bodies]
+        if np.any(np.abs(dv[:, 2, :]) > alpha_scale[:, None]):
+            return None
+        phi0, phi1 = free.phi0.copy(), free.phi1.copy()
+        phi0[bodies] += dv[:, :2, 0]
+        phi1[bodies] = dv[:, :2, 1:]
+        f0, f1 = f[:, 0].copy(), np.ascontiguousarray(f[:, 1:])
+        contacts = mode.held[:6] + (f0, f1) + mode.held[8:]
+        return _Phase(free.kind, index, phi0, phi1, drives, contacts, f0, f1)
+
+    def _compiled_rhs(self, state: State) -> tuple | None:
+        """Arguments of the compiled right-hand side of the held mode, None while a drive
+        blends (then the Python one, which asks the drives, integrates)."""
+        model = self._drive_model(state.t)
+        if model is None:
+            return None
+        w, mode = self.world, self._mode
+        index, drives, free = model
+        col = np.full(w.n, -1, dtype=np.int64)
+        col[self._dyn] = 3 * np.arange(len(self._dyn))
+        return (self._dyn.astype(np.int64), col, free.kind, index, state.position.copy(),
+                state.angle.copy(), drives, np.asarray(w.gravity, dtype=float),
+                w.inv_mass, w.inv_inertia, mode.held, mode.material[1], self._verts,
+                self._normals, (self._force_scale, self._speed, _GAP_SCALE_M))
+
+    def _held(self, features: Contacts, friction: np.ndarray, sigma: np.ndarray,
+              group: np.ndarray, mu_s: np.ndarray) -> tuple[tuple, int]:
+        """Kernel arrays of held contacts, and how many event functions they watch."""
+        k = features.n
+        if not k:
+            return self._no_contacts, 0
+        stick = friction == STICK
+        compact = np.full(k, -1, dtype=np.int64)
+        _, compact[stick] = np.unique(group[stick], return_inverse=True)
+        n_groups = int(compact.max(initial=-1)) + 1
+        n_slide = int(np.sum(friction == SLIDE))
+        v, e = self._verts, features.edge_b
+        none = np.zeros(0)
+        held = (features.body_a.astype(np.int64), features.body_b.astype(np.int64),
+                v[features.vertex_a], v[e], v[self._next_vertex[e]], self._normals[e], none,
+                np.zeros((0, 0)), friction.astype(np.int64), sigma.astype(float), mu_s,
+                compact, n_groups)
+        return held, 3 * k + n_groups + n_slide
+
+    # ------------------------------------------------------------------ candidates
+    def _refresh_candidates(self, state: State, h: float) -> None:
+        """Candidates of an integrator step: every pair within a heuristic reach of the step.
+
+        The pairs detected earlier within a wider margin still contain them while no body has
+        moved more than half the difference."""
+        mode, near = self._mode, self._near
         reach = 2.0 * h * (self._speed * 4 + float(np.max(
             np.linalg.norm(state.velocity, axis=1), initial=0.0))) + 1e-6
-        found = find_contacts(w.shapes, state.position, state.angle, w.dynamic, margin=reach)
-        active = self._mode.features
-        key_active = set(zip(active.vertex_a.tolist(), active.edge_b.tolist()))
-        keep = np.array([(va, eb) not in key_active for va, eb in
-                         zip(found.vertex_a.tolist(), found.edge_b.tolist())], dtype=bool)
-        self._mode.candidates = _select(found, np.flatnonzero(keep)) if found.n else found
+        if near is not None:
+            moved = float(np.max(np.linalg.norm(state.position - near.anchor_pos, axis=1) +
+                                 np.abs(state.angle - near.anchor_ang) * self._radius))
+            if 2.0 * moved + reach > near.margin:
+                near = None
+        if near is None:
+            near = self._near = self._find_candidates(
+                state, max(2.0 * reach, self._closed_form_margin()))
+            mode.candidates = None
+        if mode.candidates is None:
+            mode.candidates = near.without(mode.features, len(self._piece_body))
+
+    def _find_candidates(self, state: State, margin: float) -> _Candidates:
+        """Active corners against pieces of other bodies whose boxes are within ``margin``."""
+        w = self.world
+        vb, ps, pb = self._vertex_body, self._piece_start, self._piece_body
+        if len(pb) < 2:
+            none = np.zeros(0, dtype=np.int64)
+            return _Candidates(none, none, (none, np.zeros((0, 2)), none, none, none),
+                               state.position.copy(), state.angle.copy(), margin, state.t)
+        ang = state.angle[vb]
+        c, s = np.cos(ang), np.sin(ang)
+        v = self._verts
+        wx = state.position[vb, 0] + c * v[:, 0] - s * v[:, 1]
+        wy = state.position[vb, 1] + s * v[:, 0] + c * v[:, 1]
+        lo = np.stack([np.minimum.reduceat(wx, ps[:-1]), np.minimum.reduceat(wy, ps[:-1])], 1)
+        hi = np.stack([np.maximum.reduceat(wx, ps[:-1]), np.maximum.reduceat(wy, ps[:-1])], 1)
+        near = np.all((lo[:, None, :] <= hi[None, :, :] + margin) &
+                      (lo[None, :, :] <= hi[:, None, :] + margin), axis=2)
+        dyn = w.dynamic[pb]
+        near &= (pb[:, None] != pb[None, :]) & (dyn[:, None] | dyn[None, :])
+        vertex_piece = self._vertex_piece[self._active_vertex]
+        rows, cols = np.nonzero(near[vertex_piece])
+        vertex, piece = self._active_vertex[rows], cols
+        arrays = (vb[vertex].astype(np.int64), v[vertex], pb[piece].astype(np.int64),
+                  ps[piece].astype(np.int64), ps[piece + 1].astype(np.int64))
+        return _Candidates(vertex, piece, arrays, state.position.copy(), state.angle.copy(),
+                           margin, state.t)
 
     # ------------------------------------------------------------------ events
     def _settle(self, state: State) -> None:
         """Resolve collisions at the current instant, then choose the next contact mode."""
         w, st = self.world, self.settings
+        # Impacts change velocities only, so the contacts found once hold throughout.
+        contacts = find_contacts(w.shapes, state.position, state.angle, w.dynamic,
+                                 margin=st.touch_m)
+        if not contacts.n:
+            self._choose_mode(state, None, None, None)
+            return
+        self.stats.max_penetration_m = max(self.stats.max_penetration_m,
+                                           float(np.max(-contacts.gap, initial=0.0)))
+        cs = self._contact_set(state, contacts)
+        v_n, v_t = _relative_velocity(cs, state)
         for _ in range(20):
-            contacts = find_contacts(w.shapes, state.position, state.angle, w.dynamic,
-                                     margin=st.touch_m)
-            if not contacts.n:
-                break
-            self.stats.max_penetration_m = max(self.stats.max_penetration_m,
-                                               float(np.max(-contacts.gap, initial=0.0)))
-            cs = contact_set(w, state, contacts)
-            v_n, v_t = relative_velocity(cs, state)
             if not (v_n < -st.slip_tol_mps * 10).any():
                 break
             self._impact(cs, state, v_n, v_t)
-        self._choose_mode(state)
+            v_n, v_t = _relative_velocity(cs, state)
+        self._choose_mode(state, cs, v_n, v_t)
 
     def _impact(self, cs: ContactSet, state: State, v_n: np.ndarray, v_t: np.ndarray) -> None:
         """Simultaneous frictional impulse LCP (Kawachi) over every touching contact."""
-        w, st = self.world, self.settings
+        st = self.settings
         colliding = v_n < -st.slip_tol_mps * 10
-        e = np.where(-v_n > st.rest_speed_mps, cs.restitution, 0.0)
-        for bodies, idx in islands(w, cs):
-            if not colliding[idx].any():
+        for bodies, idx in self._islands(cs):
+            whole = len(idx) == cs.n
+            if not (colliding if whole else colliding[idx]).any():
                 continue
-            sub = cs.subset(idx)
-            jac = island_jacobian(w, sub, bodies)
-            W = jac.delassus()
-            vn, vt = v_n[idx], v_t[idx]
-            b_full = np.concatenate([(1.0 + e[idx]) * np.minimum(vn, 0.0) +
-                                     np.maximum(vn, 0.0), vt])
-            friction, mu_lo, mu_hi = friction_rows(sub, vt, colliding[idx],
-                                                   self.spec.friction_impulse,
+            sub = cs if whole else cs.subset(idx)
+            J, minv, W = self._jacobian(sub, bodies)
+            vn, vt, hit = (v_n, v_t, colliding) if whole else (v_n[idx], v_t[idx], colliding[idx])
+            b_full = kern.impact_rhs(vn, vt, sub.restitution, st.rest_speed_mps)
+            friction, mu_lo, mu_hi = friction_rows(sub, vt, hit, self.spec.friction_impulse,
                                                    st.slip_tol_mps)
             if not self.spec.friction_impulse:
                 friction[:] = NONE
-            asm = assemble(W, b_full, friction, mu_lo, mu_hi)
-            result = lcp.solve(asm.problem, tol=st.lcp_tol)
-            self.stats.record(result)
-            p = asm.full(result.x)
-            v_pre = np.concatenate([vn, vt])
-            gain = float(p @ v_pre + 0.5 * p @ (W @ p))
-            if gain > 1e-9 * max(1e-12, float(np.abs(p) @ np.abs(v_pre))):
+            p, _, _ = self._solve_lcp('impact', W, b_full, friction, mu_lo, mu_hi)
+            dv, gain, scale = kern.impulse_effect(J, minv, W, p, vn, vt)
+            if gain > 1e-9 * max(1e-12, scale):
                 # Never let a collision create kinetic energy: fall back to the frictionless
                 # impulse, which cannot.
                 self.stats.energy_fixes += 1
-                asm = assemble(W, b_full, np.full(len(idx), NONE), mu_lo, mu_hi)
-                result = lcp.solve(asm.problem, tol=st.lcp_tol)
-                self.stats.record(result)
-                p = asm.full(result.x)
-            dv = jac.velocity_change(p)
+                p, _, _ = self._solve_lcp('impact', W, b_full, np.full(len(idx), NONE), mu_lo,
+                                          mu_hi)
+                dv = kern.impulse_effect(J, minv, W, p, vn, vt)[0]
             state.velocity[bodies] += dv[:, :2]
             state.omega[bodies] += dv[:, 2]
             k = len(idx)
             self._pending.append(StepContacts(sub, p[:k], p[k:]))
             self.stats.impacts += 1
 
-    def _choose_mode(self, state: State) -> None:
-        """Baraff's frictional force LCP over resting contacts decides the next phase."""
-        w, st = self.world, self.settings
-        contacts = find_contacts(w.shapes, state.position, state.angle, w.dynamic,
-                                 margin=st.touch_m)
-        empty = Contacts.empty()
-        if not contacts.n:
-            self._mode = _Mode(empty, np.zeros(0, int), np.zeros(0), np.zeros(0, int), empty)
+    def _choose_mode(self, state: State, cs: ContactSet | None, v_n: np.ndarray | None,
+                     v_t: np.ndarray | None) -> None:
+        """Baraff's frictional force LCP over resting contacts decides the next phase.
+
+        ``cs`` are the touching contacts (None if there are none), ``v_n, v_t`` their
+        relative velocities."""
+        st = self.settings
+        if cs is None:
+            self._set_mode(state, Contacts.empty(), np.zeros(0, int), np.zeros(0),
+                           np.zeros(0, int), (np.zeros(0), np.zeros(0), np.zeros(0)), None)
             return
-        cs = contact_set(w, state, contacts)
-        v_n, v_t = relative_velocity(cs, state)
         resting = np.flatnonzero(np.abs(v_n) <= st.slip_tol_mps * 10)
-        cs = cs.subset(resting)
-        v_t = v_t[resting]
+        if len(resting) < cs.n:
+            cs = cs.subset(resting)
+            v_n, v_t = v_n[resting], v_t[resting]
         k = cs.n
         keep = np.zeros(k, bool)
-        friction = np.zeros(k, int)
+        friction = np.zeros(k, np.int64)
         sigma = np.sign(v_t)
-        acc = np.zeros((w.n, 2))
-        acc[w.dynamic] = w.gravity
-        acc[~w.dynamic] = w.prescribed_acceleration(state.t)[~w.dynamic]
+        acc = self._free_acceleration(state.t)
         sliding = np.abs(v_t) > st.slip_tol_mps
-        for bodies, idx in islands(w, cs):
-            sub = cs.subset(idx)
-            result, a_n, a_t, f_n, f_t, fr = self._force_lcp(sub, state, acc, bodies,
-                                                             sliding[idx], sigma[idx])
-            if not result.converged:
+        for bodies, idx in self._islands(cs):
+            whole = len(idx) == k
+            sub = cs if whole else cs.subset(idx)
+            vn, vt, sig = (v_n, v_t, sigma) if whole else (v_n[idx], v_t[idx], sigma[idx])
+            ok, message, a_rel, f, fr = self._force_lcp(sub, state, acc, bodies, vn, vt,
+                                                        sliding[idx], sig)
+            if not ok:
                 # No consistent contact forces (Painlevé): impulse without collision.
                 self.stats.messages.append(
-                    f'force LCP failed at t={state.t:.9f}s ({result.message}); impulse applied')
+                    f'force LCP failed at t={state.t:.9f}s ({message}); impulse applied')
                 self._impact_without_collision(sub, state, bodies)
-                result, a_n, a_t, f_n, f_t, fr = self._force_lcp(
-                    sub, state, acc, bodies, np.zeros(len(idx), bool), sigma[idx])
-            fscale = self._force_scale * 1e-12
-            active = (f_n > fscale) | (a_n <= 1e-9 * np.linalg.norm(w.gravity))
-            keep[idx] = active
-            mu_s = sub.mu_static
-            at_bound = np.abs(f_t) >= mu_s * f_n * (1 - 1e-9) - fscale
-            starts = (fr == BOX) & at_bound & (np.abs(a_t) > 1e-12)
-            friction[idx] = np.where(fr == SLAVED, SLIDE,
-                                     np.where(starts, SLIDE, np.where(fr == BOX, STICK, NONE)))
-            sigma[idx] = np.where(starts, np.sign(a_t), sigma[idx])
+                vn, vt = _relative_velocity(sub, state)
+                ok, message, a_rel, f, fr = self._force_lcp(
+                    sub, state, acc, bodies, vn, vt, np.zeros(len(idx), bool), sig)
+            keep[idx], friction[idx], sigma[idx] = kern.mode_rows(
+                f, a_rel, fr, sub.mu_static, sig, self._force_scale * 1e-12, 1e-9 * self._g)
         sel = np.flatnonzero(keep)
-        active = cs.subset(sel)
-        self._mode = _Mode(active.contacts, friction[sel], sigma[sel], _groups(active), empty)
+        active = cs if len(sel) == k else cs.subset(sel)
+        self._set_mode(state, active.contacts, friction[sel], sigma[sel], _groups(active),
+                       (active.mu_static, active.mu_dynamic, active.restitution), active)
+
+    def _set_mode(self, state: State, features: Contacts, friction: np.ndarray,
+                  sigma: np.ndarray, group: np.ndarray, material: tuple,
+                  cs: ContactSet | None) -> None:
+        """Hold a mode from ``state`` on: closed form if it has one, else integrated."""
+        held, n_events = self._held(features, friction, sigma, group, material[0])
+        self._mode = _Mode(features, friction, sigma, group, material, held, n_events)
+        self._mode.phase = self._closed_form(state, cs)
+        if self._mode.phase is None:
+            self._mode.spec = self._compiled_rhs(state)
 
     def _force_lcp(self, cs: ContactSet, state: State, acc: np.ndarray, bodies: np.ndarray,
-                   sliding: np.ndarray, sigma: np.ndarray):
-        w = self.world
+                   v_n: np.ndarray, v_t: np.ndarray, sliding: np.ndarray, sigma: np.ndarray):
+        """Baraff's force LCP of one island: converged, message, relative accelerations,
+        forces (both stacked normal then tangential) and the friction row treatment."""
         c = cs.contacts
-        a, b = c.body_a, c.body_b
-        rel = (state.velocity[a] + state.omega[a][:, None] * perp(cs.r_a)) - \
-            (state.velocity[b] + state.omega[b][:, None] * perp(cs.r_b))
-        pa = acc[a] - (state.omega[a] ** 2)[:, None] * cs.r_a
-        pb = acc[b] - (state.omega[b] ** 2)[:, None] * cs.r_b
-        b_n = np.sum((pa - pb) * c.normal, 1) + 2 * state.omega[b] * np.sum(rel * cs.tangent, 1)
-        b_t = np.sum((pa - pb) * cs.tangent, 1) - 2 * state.omega[b] * np.sum(rel * c.normal, 1)
-        jac = island_jacobian(w, cs, bodies)
-        W = jac.delassus()
-        k = c.n
-        mu = np.where(sliding, cs.mu_dynamic, cs.mu_static)
-        fr = np.where(mu > 0, np.where(sliding, SLAVED, BOX), NONE)
-        asm = assemble(W, np.concatenate([b_n, b_t]), fr, cs.mu_static, cs.mu_static,
-                       -sigma * cs.mu_dynamic)
-        result = lcp.solve(asm.problem, tol=self.settings.lcp_tol)
-        self.stats.record(result)
-        f = asm.full(result.x)
-        a_rel = W @ f + np.concatenate([b_n, b_t])
-        return result, a_rel[:k], a_rel[k:], f[:k], f[k:], fr
+        b_full, fr = kern.force_problem(c.normal, cs.r_a, cs.r_b, c.body_a, c.body_b,
+                                        state.omega, acc, v_n, v_t, sliding, cs.mu_static,
+                                        cs.mu_dynamic)
+        if b_full[:c.n].min() >= 0.0:
+            # Every contact would separate by itself: no force (LCP answer x = 0).
+            self.stats.record_trivial(1)
+            return True, '', b_full, np.zeros(2 * c.n), fr
+        _, _, W = self._jacobian(cs, bodies)
+        f, ok, message = self._solve_lcp('force', W, b_full, fr, cs.mu_static, cs.mu_static,
+                                         -sigma * cs.mu_dynamic)
+        return ok, message, W @ f + b_full, f, fr
+
+    def _free_acceleration(self, t: float) -> np.ndarray:
+        """(n, 2) accelerations without contact forces: gravity, or the prescribed motion."""
+        w = self.world
+        acc = w.prescribed_acceleration(t)
+        acc[w.dynamic] = w.gravity
+        return acc
 
     def _impact_without_collision(self, cs: ContactSet, state: State,
                                   bodies: np.ndarray) -> None:
-        v_n, v_t = relative_velocity(cs, state)
-        jac = island_jacobian(self.world, cs, bodies)
-        W = jac.delassus()
+        v_n, v_t = _relative_velocity(cs, state)
+        J, minv, W = self._jacobian(cs, bodies)
         friction, mu_lo, mu_hi = friction_rows(cs, v_t, np.zeros(cs.n, bool), True,
                                                self.settings.slip_tol_mps)
-        asm = assemble(W, np.concatenate([np.minimum(v_n, 0.0), v_t]), friction, mu_lo, mu_hi)
-        result = lcp.solve(asm.problem, tol=self.settings.lcp_tol)
-        self.stats.record(result)
-        p = asm.full(result.x)
-        dv = jac.velocity_change(p)
+        p, _, _ = self._solve_lcp('impact', W,
+                                  np.concatenate([np.minimum(v_n, 0.0), v_t]), friction, mu_lo,
+                                  mu_hi)
+        dv = (minv * (J.T @ p)).reshape(-1, 3)
         state.velocity[bodies] += dv[:, :2]
         state.omega[bodies] += dv[:, 2]
         self.stats.impacts += 1
         self._pending.append(StepContacts(cs, p[:cs.n], p[cs.n:]))
 
+    # ------------------------------------------------------------------ contact systems
+    def _contact_set(self, state: State, contacts: Contacts) -> ContactSet:
+        """:func:`contact_set`, with the body pairs' materials looked up."""
+        a, b = contacts.body_a, contacts.body_b
+        mu_s, mu_d, e = self._materials
+        return ContactSet(contacts, contacts.normal[:, ::-1] * (-1.0, 1.0),
+                          contacts.point - state.position[a], contacts.point - state.position[b],
+                          mu_s[a, b], mu_d[a, b], e[a, b])
+
+    def _islands(self, cs: ContactSet) -> list[tuple[np.ndarray, np.ndarray]]:
+        if len(self._dyn) == 1:
+            return [(self._dyn, np.arange(cs.n))] if cs.n else []
+        return islands(self.world, cs)
+
+    def _jacobian(self, cs: ContactSet,
+                  bodies: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Contact Jacobian over the (ascending) bodies' (vx, vy, omega) columns, the diagonal
+        of M^-1 (as :func:`island_jacobian` gives them) and the Delassus matrix."""
+        w = self.world
+        c = cs.contacts
+        ok, J, minv, W = kern.contact_jacobian(c.normal, cs.r_a, cs.r_b, c.body_a, c.body_b,
+                                               w.dynamic, w.inv_mass, w.inv_inertia, bodies)
+        if not ok:
+            jac = island_jacobian(w, cs, bodies)
+            J, minv = jac.J, jac.inv_mass
+            W = (J * minv) @ J.T
+        return J, minv, W
+
+    def _solve_lcp(self, kind: str, W: np.ndarray, b_full: np.ndarray, friction: np.ndarray,
+                   mu_lo: np.ndarray, mu_hi: np.ndarray,
+                   slave: np.ndarray | None = None) -> tuple[np.ndarray, bool, str]:
+        """A contact LCP posed as for :func:`feeder_sim.dynamics.assemble`: stacked solution
+        (2k,), converged, message.
+
+        The rows' final states (active set) of the last pivoting solve of each problem shape
+        are tried first and kept when the LCP residual accepts them: events of a periodic
+        motion pose nearly the same problem every cycle, so the pivoting solver then runs only
+        when the contact situation changes.
+        """
+        k = len(friction)
+        if k == 0 or b_full[:k].min() >= 0.0:
+            self.stats.record_trivial(1)
+            return np.zeros(2 * k), True, ''
+        friction = friction.astype(np.int64)
+        slave = np.zeros(k) if slave is None else slave
+        tol = self.settings.lcp_tol
+        key = (kind, friction.tobytes(), (mu_lo > 0).tobytes(), (mu_hi > 0).tobytes())
+        pattern = self._patterns.get(key)
+        if pattern is not None:
+            f, x, w, res = kern.lcp_known_pattern(W, b_full, friction, mu_lo, mu_hi, slave,
+                                                  pattern)
+            if res <= tol:
+                self.stats.record(lcp.LCPResult(x, w, 'active set', 0, 0, res, True, ''))
+                return f, True, ''
+        A, P, rows, normal_of, lo, hi = kern.reduce_lcp(W, friction, mu_lo, mu_hi, slave)
+        result = lcp.solve(lcp.FrictionalLCP(A, b_full[rows], normal_of, lo, hi), tol=tol)
+        self.stats.record(result)
+        if result.converged:
+            self._patterns[key] = kern.lcp_pattern(result.x, normal_of, lo, hi)
+        return P @ result.x, result.converged, result.message
+
     def reset(self) -> None:
         self._mode = None
+        self._near = None
+        self._drives = None
         self._h = self.spec.time_step
         self._pending = []

@@ -1,0 +1,762 @@
+"""Numba kernels of the event-driven method (:mod:`feeder_sim.event_driven`).
+
+* Closed-form phases (``advance``): bodies are FIXED (static or undriven, pose constant),
+  DRIVEN (pose from a sinusoidal drive ``d(t) = A sin(phase + w (t - t_ref))`` along ``u``) or
+  MOVING (dynamic: the anchor state at ``t0`` and the acceleration ``phi0 + phi1 @ s(t)``, with
+  ``s`` the drives' scalar accelerations; the angle advances at the anchor's constant rate).
+  Held contacts carry their forces ``f0 + f1 @ s(t)`` (normal rows, then tangential rows).
+* Candidate collisions: an active corner against a convex piece, whose gap is the largest
+  signed distance of the corner from the piece's edge lines (< 0 only inside the piece).
+* Small contact systems: Jacobian and Delassus matrix, the boxed LCP of
+  :func:`feeder_sim.dynamics.assemble`, an LCP solved on a given active set and its residual,
+  the force LCP's right-hand side and the mode it implies.
+* Integrated phases: the held mode's right-hand side, event functions and forces
+  (``mode_rhs``) and Dormand–Prince 5(4) steps (``dopri_step``).
+
+All kernels are compiled with ``cache=True``: the first run on a machine compiles them (about
+half a minute, once); later runs load the cached machine code.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+_JIT = {'cache': True, 'nogil': True, 'error_model': 'numpy'}
+
+FIXED, DRIVEN, MOVING = 0, 1, 2
+DONE, EVENT, REFRESH = 0, 1, 2
+NO_FRICTION, STICK, SLIDE = 0, 1, 2
+BOX_ROW, SLAVED_ROW = 1, 2    # friction treatment of a contact LCP row (feeder_sim.dynamics)
+
+
+@numba.njit(**_JIT)
+def _world_point(pos, ang, body, local):
+    c, s = math.cos(ang[body]), math.sin(ang[body])
+    return (pos[body, 0] + c * local[0] - s * local[1],
+            pos[body, 1] + s * local[0] + c * local[1])
+
+
+@numba.njit(**_JIT)
+def _poses(t, t0, kind, index, pos0, ang0, vel0, om0, phi0, phi1, dr_u, dr_base, dr_amp,
+           dr_w, dr_phase, t_ref, pos, ang, vel, om, acc_drive, dvel_drive):
+    """Poses and velocities of every body at t; drive accelerations and velocity changes."""
+    tau = t - t0
+    nd = dr_amp.shape[0]
+    disp = np.empty(nd)
+    dval = np.empty(nd)
+    vval = np.empty(nd)
+    for d in range(nd):
+        a, w = dr_amp[d], dr_w[d]
+        ph, ph0 = dr_phase[d] + w * (t - t_ref), dr_phase[d] + w * (t0 - t_ref)
+        s, c = math.sin(ph), math.cos(ph)
+        d0, v0 = a * math.sin(ph0), a * w * math.cos(ph0)
+        dval[d], vval[d] = a * s, a * w * c
+        acc_drive[d] = -a * w * w * s
+        disp[d] = dval[d] - d0 - v0 * tau
+        dvel_drive[d] = vval[d] - v0
+    for i in range(kind.shape[0]):
+        k = kind[i]
+        if k == FIXED:
+            pos[i, 0], pos[i, 1] = pos0[i, 0], pos0[i, 1]
+            vel[i, 0], vel[i, 1] = vel0[i, 0], vel0[i, 1]
+            ang[i], om[i] = ang0[i], om0[i]
+        elif k == DRIVEN:
+            d = index[i]
+            for j in range(2):
+                pos[i, j] = dr_base[d, j] + dval[d] * dr_u[d, j]
+                vel[i, j] = vval[d] * dr_u[d, j]
+            ang[i], om[i] = ang0[i], 0.0
+        else:
+            for j in range(2):
+                p = pos0[i, j] + tau * (vel0[i, j] + 0.5 * tau * phi0[i, j])
+                v = vel0[i, j] + tau * phi0[i, j]
+                for d in range(nd):
+                    p += phi1[i, j, d] * disp[d]
+                    v += phi1[i, j, d] * dvel_drive[d]
+                pos[i, j], vel[i, j] = p, v
+            ang[i] = ang0[i] + om0[i] * tau
+            om[i] = om0[i]
+
+
+@numba.njit(**_JIT)
+def _vertex_piece_gap(pos, ang, vbody, local, pbody, start, end, verts, normals):
+    px, py = _world_point(pos, ang, vbody, local)
+    c, s = math.cos(ang[pbody]), math.sin(ang[pbody])
+    best = -np.inf
+    for j in range(start, end):
+        qx = pos[pbody, 0] + c * verts[j, 0] - s * verts[j, 1]
+        qy = pos[pbody, 1] + s * verts[j, 0] + c * verts[j, 1]
+        nx = c * normals[j, 0] - s * normals[j, 1]
+        ny = s * normals[j, 0] + c * normals[j, 1]
+        d = nx * (px - qx) + ny * (py - qy)
+        if d > best:
+            best = d
+    return best
+
+
+@numba.njit(**_JIT)
+def candidate_gaps(pos, ang, cv_body, cv_local, cp_body, cp_start, cp_end, verts, normals,
+                   out):
+    """Gap (m) of every candidate vertex against its piece: > 0 outside, < 0 inside."""
+    for i in range(cv_body.shape[0]):
+        out[i] = _vertex_piece_gap(pos, ang, cv_body[i], cv_local[i], cp_body[i], cp_start[i],
+                                   cp_end[i], verts, normals)
+
+
+@numba.njit(**_JIT)
+def _contact_geometry(pos, ang, vel, om, a, b, vloc, q0loc, q1loc, nloc):
+    """Edge parameter, tangential relative velocity, point and normal of one contact."""
+    px, py = _world_point(pos, ang, a, vloc)
+    q0x, q0y = _world_point(pos, ang, b, q0loc)
+    q1x, q1y = _world_point(pos, ang, b, q1loc)
+    cb, sb = math.cos(ang[b]), math.sin(ang[b])
+    nx, ny = cb * nloc[0] - sb * nloc[1], sb * nloc[0] + cb * nloc[1]
+    ex, ey = q1x - q0x, q1y - q0y
+    param = ((px - q0x) * ex + (py - q0y) * ey) / (ex * ex + ey * ey)
+    gap = nx * (px - q0x) + ny * (py - q0y)
+    rax, ray = px - pos[a, 0], py - pos[a, 1]
+    rbx, rby = px - pos[b, 0], py - pos[b, 1]
+    relx = (vel[a, 0] - om[a] * ray) - (vel[b, 0] - om[b] * rby)
+    rely = (vel[a, 1] + om[a] * rax) - (vel[b, 1] + om[b] * rbx)
+    v_t = -ny * relx + nx * rely
+    return param, v_t, gap, px, py, nx, ny
+
+
+@numba.njit(**_JIT)
+def _events(t, t0, bodies, drives, contacts, cands, verts, normals, scales, pos, ang, vel, om,
+            acc_drive, dvel_drive, g):
+    kind, index, pos0, ang0, vel0, om0, phi0, phi1 = bodies
+    dr_u, dr_base, dr_amp, dr_w, dr_phase, t_ref = drives
+    (c_a, c_b, vloc, q0loc, q1loc, nloc, f0, f1, friction, sigma, mu_s, group,
+     n_groups) = contacts
+    cv_body, cv_local, cp_body, cp_start, cp_end = cands
+    force_scale, speed_scale, gap_scale = scales
+    _poses(t, t0, kind, index, pos0, ang0, vel0, om0, phi0, phi1, dr_u, dr_base, dr_amp, dr_w,
+           dr_phase, t_ref, pos, ang, vel, om, acc_drive, dvel_drive)
+    k = c_a.shape[0]
+    nd = dr_amp.shape[0]
+    f = np.empty(2 * k)
+    for r in range(2 * k):
+        v = f0[r]
+        for d in range(nd):
+            v += f1[r, d] * acc_drive[d]
+        f[r] = v
+    j = 0
+    for i in range(k):
+        g[j] = f[i] / force_scale
+        j += 1
+    sum_n = np.zeros(n_groups)
+    sum_t = np.zeros(n_groups)
+    for i in range(k):
+        if group[i] >= 0:
+            sum_n[group[i]] += f[i] * mu_s[i]
+            sum_t[group[i]] += f[k + i]
+    for q in range(n_groups):
+        g[j] = (sum_n[q] - abs(sum_t[q])) / force_scale
+        j += 1
+    params = np.empty(k)
+    for i in range(k):
+        param, v_t, _, _, _, _, _ = _contact_geometry(pos, ang, vel, om, c_a[i], c_b[i],
+                                                      vloc[i], q0loc[i], q1loc[i], nloc[i])
+        params[i] = param
+        if friction[i] == SLIDE:
+            g[j] = sigma[i] * v_t / speed_scale
+            j += 1
+    for i in range(k):
+        g[j] = params[i]
+        j += 1
+    for i in range(k):
+        g[j] = 1.0 - params[i]
+        j += 1
+    for i in range(cv_body.shape[0]):
+        g[j] = _vertex_piece_gap(pos, ang, cv_body[i], cv_local[i], cp_body[i], cp_start[i],
+                                 cp_end[i], verts, normals) / gap_scale
+        j += 1
+
+
+@numba.njit(**_JIT)
+def _within_reach(h, bodies, drives, pos, ang, vel, om, reach):
+    """True if no body can get farther than its reach from the candidates' anchor in h."""
+    kind, index, _, _, _, _, phi0, phi1 = bodies
+    _, _, dr_amp, dr_w, _, _ = drives
+    anchor_pos, anchor_ang, radius, limit = reach
+    nd = dr_amp.shape[0]
+    for i in range(kind.shape[0]):
+        k = kind[i]
+        if k == FIXED:
+            continue
+        dx, dy = pos[i, 0] - anchor_pos[i, 0], pos[i, 1] - anchor_pos[i, 1]
+        moved = math.sqrt(dx * dx + dy * dy) + abs(ang[i] - anchor_ang[i]) * radius[i]
+        if k == DRIVEN:
+            d = index[i]
+            speed = abs(dr_amp[d] * dr_w[d])
+        else:
+            speed = math.sqrt(vel[i, 0] ** 2 + vel[i, 1] ** 2) + abs(om[i]) * radius[i] + h * (
+                math.sqrt(phi0[i, 0] ** 2 + phi0[i, 1] ** 2))
+            for d in range(nd):
+                change = min(2.0, h * abs(dr_w[d])) * abs(dr_amp[d] * dr_w[d])
+                speed += change * math.sqrt(phi1[i, 0, d] ** 2 + phi1[i, 1, d] ** 2)
+        if moved + h * speed > limit:
+            return False
+    return True
+
+
+@numba.njit(**_JIT)
+def advance(t0, t_end, h, threshold, n_events, bodies, drives, contacts, cands, verts,
+            normals, scales, reach, pos, ang, vel, om, dvel_drive):
+    """Step a closed-form phase from t0 towards t_end in steps of h, watching the events.
+
+    An event fires when its function drops below ``-threshold`` during a step it started at or
+    above it; the earliest crossing is then located by Illinois regula falsi to the last bit of
+    t and the state just past it is returned. Stops early (REFRESH) before a step that could
+    carry a body out of reach of the candidate collisions.
+
+    Returns ``(status, t, steps)``; ``pos, ang, vel, om`` hold the state at t and
+    ``dvel_drive`` the drives' velocity change since t0 (the integral of their acceleration).
+    """
+    nd = drives[2].shape[0]
+    acc_drive = np.empty(nd)
+    dv_scratch = np.empty(nd)
+    g_lo = np.empty(n_events)
+    g_hi = np.empty(n_events)
+    _events(t0, t0, bodies, drives, contacts, cands, verts, normals, scales, pos, ang, vel, om,
+            acc_drive, dv_scratch, g_lo)
+    tp = t0
+    steps = 0
+    while tp < t_end - 1e-15:
+        dt = min(h, t_end - tp)
+        if not _within_reach(dt, bodies, drives, pos, ang, vel, om, reach):
+            _events(tp, t0, bodies, drives, contacts, cands, verts, normals, scales, pos, ang,
+                    vel, om, acc_drive, dvel_drive, g_hi)
+            return REFRESH, tp, steps
+        t1 = tp + dt
+        _events(t1, t0, bodies, drives, contacts, cands, verts, normals, scales, pos, ang, vel,
+                om, acc_drive, dvel_drive, g_hi)
+        hit = (g_hi < -threshold) & (g_lo >= -threshold)
+        if hit.any():
+            t_ev = _locate(tp, dt, g_lo[hit] + threshold, g_hi[hit] + threshold, hit, t0,
+                           threshold, bodies, drives, contacts, cands, verts, normals, scales,
+                           pos, ang, vel, om, acc_drive, dvel_drive, n_events)
+            _events(t_ev, t0, bodies, drives, contacts, cands, verts, normals, scales, pos, ang,
+                    vel, om, acc_drive, dvel_drive, g_hi)
+            return EVENT, t_ev, steps
+        tp = t1
+        g_lo[:] = g_hi
+        steps += 1
+    _events(tp, t0, bodies, drives, contacts, cands, verts, normals, scales, pos, ang, vel, om,
+            acc_drive, dvel_drive, g_hi)
+    return DONE, tp, steps
+
+
+@numba.njit(**_JIT)
+def _locate(tp, h, g_lo, g_hi, hit, t0, threshold, bodies, drives, contacts, cands, verts,
+            normals, scales, pos, ang, vel, om, acc_drive, dvel_drive, n_events):
+    """Earliest time past which a hit function is below its threshold (Illinois)."""
+    lo, hi = 0.0, h
+    best = h
+    side = 0
+    g_all = np.empty(n_events)
+    for _ in range(100):
+        if hi - lo <= 1e-15 * max(1.0, abs(tp)) + 1e-16:
+            break
+        f = np.inf
+        for i in range(g_hi.shape[0]):
+            if g_hi[i] < 0:
+                f = min(f, g_lo[i] / (g_lo[i] - g_hi[i]))
+        if np.isfinite(f):
+            tau = lo + min(max(f, 1e-3), 1 - 1e-3) * (hi - lo)
+        else:
+            tau = 0.5 * (lo + hi)
+        _events(tp + tau, t0, bodies, drives, contacts, cands, verts, normals, scales, pos, ang,
+                vel, om, acc_drive, dvel_drive, g_all)
+        g_t = g_all[hit] + threshold
+        if (g_t < 0).any():
+            hi, g_hi, best = tau, g_t, tau
+            if side == -1:
+                g_lo = g_lo * 0.5
+            side = -1
+        else:
+            lo, g_lo = tau, g_t
+            if side == 1:
+                g_hi = np.where(g_hi < 0, g_hi * 0.5, g_hi)
+            side = 1
+    return tp + best
+
+
+# --------------------------------------------------------------------------------------------
+# small contact systems
+
+
+@numba.njit(**_JIT)
+def contact_jacobian(normal, r_a, r_b, body_a, body_b, dynamic, inv_mass, inv_inertia, bodies):
+    """Contact Jacobian (rows ``N_0..N_{k-1}, T_0..T_{k-1}``, columns (vx, vy, omega) of each of
+    ``bodies``), the diagonal of M^-1 and the Delassus matrix, when every contact moves exactly
+    one dynamic body; ``ok`` is False (and the rest empty) otherwise."""
+    k, nb = normal.shape[0], bodies.shape[0]
+    col = np.full(dynamic.shape[0], -1, np.int64)
+    for i in range(nb):
+        col[bodies[i]] = 3 * i
+    minv = np.empty(3 * nb)
+    for i in range(nb):
+        minv[3 * i] = minv[3 * i + 1] = inv_mass[bodies[i]]
+        minv[3 * i + 2] = inv_inertia[bodies[i]]
+    J = np.zeros((2 * k, 3 * nb))
+    for i in range(k):
+        a, b = body_a[i], body_b[i]
+        if dynamic[a] == dynamic[b] or col[a if dynamic[a] else b] < 0:
+            return False, J, minv, np.zeros((0, 0))
+        if dynamic[a]:
+            c, s, rx, ry = col[a], 1.0, r_a[i, 0], r_a[i, 1]
+        else:
+            c, s, rx, ry = col[b], -1.0, r_b[i, 0], r_b[i, 1]
+        nx, ny = normal[i, 0], normal[i, 1]
+        tx, ty = -ny, nx
+        J[i, c], J[i, c + 1], J[i, c + 2] = s * nx, s * ny, s * (rx * ny - ry * nx)
+        J[k + i, c], J[k + i, c + 1], J[k + i, c + 2] = s * tx, s * ty, s * (rx * ty - ry * tx)
+    W = (J * minv) @ J.T
+    return True, J, minv, W
+
+
+@numba.njit(**_JIT)
+def lcp_residual(A, b, x, normal_of, lo, hi):
+    """The frictional LCP residual of :func:`feeder_sim.lcp.residual` (same formula)."""
+    m = b.shape[0]
+    if m == 0:
+        return 0.0
+    w = A @ x + b
+    xmax = np.abs(x).max()
+    if not (np.isfinite(xmax) and np.isfinite(w.sum())):
+        return np.inf
+    amax = np.abs(A).max()
+    s_w = max(1e-300, np.abs(b).max(), amax * xmax)
+    s_x = s_w / amax if amax > 0.0 else max(1e-300, xmax)
+    res = 0.0
+    for k in range(m):
+        xk, wk = x[k], w[k]
+        j = normal_of[k]
+        if j < 0:
+            res = max(res, -xk / s_x, -wk / s_w, abs(xk * wk) / (s_x * s_w))
+        else:
+            xj = max(x[j], 0.0)
+            dl = xk + lo[k] * xj
+            dh = hi[k] * xj - xk
+            away = wk * max(dl, 0.0) if wk > 0.0 else -wk * max(dh, 0.0)
+            res = max(res, -dl / s_x, -dh / s_x, away / (s_x * s_w))
+    return res
+
+
+# Row states of a frictional LCP solution: x held at 0, clamped (w = 0), friction at its lower
+# or upper bound (x slaved to its normal).
+HELD, CLAMPED, AT_LO, AT_HI = 0, 1, 2, 3
+
+
+@numba.njit(**_JIT)
+def lcp_pattern(x, normal_of, lo, hi):
+    """Row states of a solution x (the active set a pivoting solver ended with)."""
+    m = x.shape[0]
+    out = np.zeros(m, np.int64)
+    for k in range(m):
+        j = normal_of[k]
+        if j < 0:
+            out[k] = CLAMPED if x[k] > 0.0 else HELD
+            continue
+        xj = max(x[j], 0.0)
+        band = 1e-9 * (lo[k] + hi[k]) * xj
+        if xj > 0.0 and hi[k] > 0.0 and abs(x[k] - hi[k] * xj) <= band:
+            out[k] = AT_HI
+        elif xj > 0.0 and lo[k] > 0.0 and abs(x[k] + lo[k] * xj) <= band:
+            out[k] = AT_LO
+        elif x[k] == 0.0:
+            out[k] = HELD
+        else:
+            out[k] = CLAMPED
+    return out
+
+
+@numba.njit(**_JIT)
+def lcp_with_pattern(A, b, normal_of, lo, hi, pattern):
+    """The solution with the given row states: clamped rows get w = 0 (least squares)."""
+    m = b.shape[0]
+    col = np.full(m, -1, np.int64)
+    nc = 0
+    for k in range(m):
+        if pattern[k] == CLAMPED:
+            col[k] = nc
+            nc += 1
+    S = np.zeros((m, nc))
+    for k in range(m):
+        if pattern[k] == CLAMPED:
+            S[k, col[k]] = 1.0
+        elif normal_of[k] >= 0 and col[normal_of[k]] >= 0:
+            if pattern[k] == AT_LO:
+                S[k, col[normal_of[k]]] = -lo[k]
+            elif pattern[k] == AT_HI:
+                S[k, col[normal_of[k]]] = hi[k]
+    x = np.zeros(m)
+    if nc == 0:
+        return x
+    AS = A @ S
+    M = np.empty((nc, nc))
+    rhs = np.empty(nc)
+    for k in range(m):
+        if col[k] >= 0:
+            M[col[k]] = AS[k]
+            rhs[col[k]] = -b[k]
+    z = np.linalg.lstsq(M, rhs, 1e-13)[0]
+    return S @ z
+
+
+@numba.njit(**_JIT)
+def reduce_lcp(W, friction, mu_lo, mu_hi, slave):
+    """The boxed LCP of :func:`feeder_sim.dynamics.assemble` from the full 2k problem:
+    ``(A, P, rows, normal_of, lo, hi)`` with ``b = b_full[rows]`` and the stacked solution
+    ``P @ x``. Friction NONE drops the row, BOX keeps it, SLAVED ties it to its normal."""
+    c = friction.shape[0]
+    nbox = 0
+    for i in range(c):
+        if friction[i] == BOX_ROW:
+            nbox += 1
+    m = c + nbox
+    P = np.zeros((2 * c, m))
+    rows = np.empty(m, np.int64)
+    normal_of = np.full(m, -1, np.int64)
+    lo = np.zeros(m)
+    hi = np.zeros(m)
+    for i in range(c):
+        P[i, i] = 1.0
+        rows[i] = i
+    r = c
+    for i in range(c):
+        if friction[i] == BOX_ROW:
+            P[c + i, r] = 1.0
+            rows[r], normal_of[r], lo[r], hi[r] = c + i, i, mu_lo[i], mu_hi[i]
+            r += 1
+        elif friction[i] == SLAVED_ROW:
+            P[c + i, i] = slave[i]
+    A = np.empty((m, 2 * c))
+    for i in range(m):
+        A[i] = W[rows[i]]
+    return A @ P, P, rows, normal_of, lo, hi
+
+
+@numba.njit(**_JIT)
+def lcp_known_pattern(W, b_full, friction, mu_lo, mu_hi, slave, pattern):
+    """Solve the contact LCP with given row states: ``(stacked solution, x, w, residual)``."""
+    A, P, rows, normal_of, lo, hi = reduce_lcp(W, friction, mu_lo, mu_hi, slave)
+    b = b_full[rows]
+    if pattern.shape[0] != b.shape[0]:
+        x = np.zeros(b.shape[0])
+        return P @ x, x, b, np.inf
+    x = lcp_with_pattern(A, b, normal_of, lo, hi, pattern)
+    return P @ x, x, A @ x + b, lcp_residual(A, b, x, normal_of, lo, hi)
+
+
+# --------------------------------------------------------------------------------------------
+# force LCP of the resting contacts (Baraff)
+
+
+@numba.njit(**_JIT)
+def force_problem(normal, r_a, r_b, body_a, body_b, omega, acc, v_n, v_t, sliding, mu_s, mu_d):
+    """Right-hand side of the force LCP and each contact's friction row treatment.
+
+    ``b`` is the contacts' relative acceleration without contact forces (Baraff 1989): the
+    centripetal terms and the rotation of the edge's normal carry over from the velocities.
+    Sliding contacts get their friction slaved to the normal force, others a box row, and
+    frictionless ones none."""
+    k = normal.shape[0]
+    b_full = np.empty(2 * k)
+    fr = np.empty(k, np.int64)
+    for i in range(k):
+        a, b = body_a[i], body_b[i]
+        wa2, wb2 = omega[a] * omega[a], omega[b] * omega[b]
+        dx = (acc[a, 0] - wa2 * r_a[i, 0]) - (acc[b, 0] - wb2 * r_b[i, 0])
+        dy = (acc[a, 1] - wa2 * r_a[i, 1]) - (acc[b, 1] - wb2 * r_b[i, 1])
+        nx, ny = normal[i, 0], normal[i, 1]
+        b_full[i] = dx * nx + dy * ny + 2.0 * omega[b] * v_t[i]
+        b_full[k + i] = -dx * ny + dy * nx - 2.0 * omega[b] * v_n[i]
+        mu = mu_d[i] if sliding[i] else mu_s[i]
+        fr[i] = 0 if mu <= 0.0 else (SLAVED_ROW if sliding[i] else BOX_ROW)
+    return b_full, fr
+
+
+@numba.njit(**_JIT)
+def mode_rows(f, a_rel, fr, mu_s, sigma, force_tol, acc_tol):
+    """The contact mode the force LCP solution implies: which contacts stay (they press, or
+    they would accelerate into each other without a force), which stick and which slide
+    (a sticking contact whose friction is at its bound while tangential acceleration remains
+    starts to slide that way)."""
+    k = fr.shape[0]
+    keep = np.empty(k, np.bool_)
+    friction = np.empty(k, np.int64)
+    new_sigma = sigma.copy()
+    for i in range(k):
+        f_n, f_t, a_n, a_t = f[i], f[k + i], a_rel[i], a_rel[k + i]
+        keep[i] = f_n > force_tol or a_n <= acc_tol
+        at_bound = abs(f_t) >= mu_s[i] * f_n * (1 - 1e-9) - force_tol
+        if fr[i] == SLAVED_ROW:
+            friction[i] = SLIDE
+        elif fr[i] == BOX_ROW and at_bound and abs(a_t) > 1e-12:
+            friction[i] = SLIDE
+            new_sigma[i] = np.sign(a_t)
+        elif fr[i] == BOX_ROW:
+            friction[i] = STICK
+        else:
+            friction[i] = NO_FRICTION
+    return keep, friction, new_sigma
+
+
+@numba.njit(**_JIT)
+def relative_velocity(normal, r_a, r_b, body_a, body_b, vel, omega):
+    """Normal and tangential velocity of each contact's vertex relative to the edge's
+    material point under it (as :func:`feeder_sim.dynamics.relative_velocity`)."""
+    k = normal.shape[0]
+    v_n = np.empty(k)
+    v_t = np.empty(k)
+    for i in range(k):
+        a, b = body_a[i], body_b[i]
+        rx = vel[a, 0] - omega[a] * r_a[i, 1] - vel[b, 0] + omega[b] * r_b[i, 1]
+        ry = vel[a, 1] + omega[a] * r_a[i, 0] - vel[b, 1] - omega[b] * r_b[i, 0]
+        nx, ny = normal[i, 0], normal[i, 1]
+        v_n[i] = rx * nx + ry * ny
+        v_t[i] = ry * nx - rx * ny
+    return v_n, v_t
+
+
+# --------------------------------------------------------------------------------------------
+# integrated phases: the held mode's right-hand side and Dormand-Prince steps
+
+# Dormand-Prince 5(4) (Dormand & Prince 1980); row 6 is the 5th-order solution (FSAL).
+_DP_C = np.array([0.0, 1 / 5, 3 / 10, 4 / 5, 8 / 9, 1.0, 1.0])
+_DP_A = np.array([
+    [0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+    [1 / 5, 0.0, 0.0, 0.0, 0.0, 0.0],
+    [3 / 40, 9 / 40, 0.0, 0.0, 0.0, 0.0],
+    [44 / 45, -56 / 15, 32 / 9, 0.0, 0.0, 0.0],
+    [19372 / 6561, -25360 / 2187, 64448 / 6561, -212 / 729, 0.0, 0.0],
+    [9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656, 0.0],
+    [35 / 384, 0.0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84],
+])
+_DP_E = np.array([35 / 384 - 5179 / 57600, 0.0, 500 / 1113 - 7571 / 16695,
+                  125 / 192 - 393 / 640, -2187 / 6784 + 92097 / 339200, 11 / 84 - 187 / 2100,
+                  -1 / 40])
+
+
+@numba.njit(**_JIT)
+def _bodies_at(t, y, dyn, kind, index, pos_fixed, ang_fixed, drives, gravity, pos, ang, vel,
+               om, acc):
+    """Every body's state and free acceleration at t: dynamic bodies from y, driven ones from
+    their sinusoid, the others fixed."""
+    dr_u, dr_base, dr_amp, dr_w, dr_phase, t_ref = drives
+    nd = dyn.shape[0]
+    for i in range(kind.shape[0]):
+        if kind[i] == FIXED:
+            pos[i, 0], pos[i, 1], ang[i] = pos_fixed[i, 0], pos_fixed[i, 1], ang_fixed[i]
+            vel[i, 0] = vel[i, 1] = om[i] = acc[i, 0] = acc[i, 1] = 0.0
+        elif kind[i] == DRIVEN:
+            d = index[i]
+            a, w = dr_amp[d], dr_w[d]
+            ph = dr_phase[d] + w * (t - t_ref)
+            s, c = math.sin(ph), math.cos(ph)
+            for j in range(2):
+                pos[i, j] = dr_base[d, j] + a * s * dr_u[d, j]
+                vel[i, j] = a * w * c * dr_u[d, j]
+                acc[i, j] = -a * w * w * s * dr_u[d, j]
+            ang[i], om[i] = ang_fixed[i], 0.0
+    for q in range(nd):
+        i = dyn[q]
+        pos[i, 0], pos[i, 1] = y[2 * q], y[2 * q + 1]
+        ang[i] = y[2 * nd + q]
+        vel[i, 0], vel[i, 1] = y[3 * nd + 2 * q], y[3 * nd + 2 * q + 1]
+        om[i] = y[5 * nd + q]
+        acc[i, 0], acc[i, 1] = gravity[0], gravity[1]
+
+
+@numba.njit(**_JIT)
+def _mode_rhs(t, y, spec, pos, ang, vel, om, acc, dydt, g, f):
+    """Time derivative of y under the held mode, its event functions and contact forces.
+
+    The same equations as ``EventDriven._rhs`` and ``_event_values``: forces are the
+    least-squares solution of the held mode's equations (pressing contacts have zero normal
+    acceleration, sticking ones zero tangential acceleration, sliding ones friction
+    ``-sigma mu_d f_N``)."""
+    (dyn, col, kind, index, pos_fixed, ang_fixed, drives, gravity, inv_mass, inv_inertia,
+     contacts, mu_d, cands, verts, normals, scales) = spec
+    c_a, c_b, vloc, q0loc, q1loc, nloc, _, _, friction, sigma, mu_s, group, n_groups = contacts
+    force_scale, speed_scale, gap_scale = scales
+    _bodies_at(t, y, dyn, kind, index, pos_fixed, ang_fixed, drives, gravity, pos, ang, vel,
+               om, acc)
+    nd = dyn.shape[0]
+    k = c_a.shape[0]
+    n_cols = 3 * nd
+    J = np.zeros((2 * k, n_cols))
+    b_full = np.empty(2 * k)
+    v_t = np.empty(k)
+    params = np.empty(k)
+    for i in range(k):
+        a, b = c_a[i], c_b[i]
+        param, vt, _, px, py, nx, ny = _contact_geometry(pos, ang, vel, om, a, b, vloc[i],
+                                                         q0loc[i], q1loc[i], nloc[i])
+        params[i], v_t[i] = param, vt
+        tx, ty = -ny, nx
+        rax, ray = px - pos[a, 0], py - pos[a, 1]
+        rbx, rby = px - pos[b, 0], py - pos[b, 1]
+        relx = (vel[a, 0] - om[a] * ray) - (vel[b, 0] - om[b] * rby)
+        rely = (vel[a, 1] + om[a] * rax) - (vel[b, 1] + om[b] * rbx)
+        # Relative acceleration without contact forces (Baraff 1989): the centripetal terms
+        # and the rotation of the edge's normal carry over from the velocities.
+        dx = (acc[a, 0] - om[a] * om[a] * rax) - (acc[b, 0] - om[b] * om[b] * rbx)
+        dy = (acc[a, 1] - om[a] * om[a] * ray) - (acc[b, 1] - om[b] * om[b] * rby)
+        b_full[i] = dx * nx + dy * ny + 2.0 * om[b] * (relx * tx + rely * ty)
+        b_full[k + i] = dx * tx + dy * ty - 2.0 * om[b] * (relx * nx + rely * ny)
+        for body, rx, ry, sign in ((a, rax, ray, 1.0), (b, rbx, rby, -1.0)):
+            cc = col[body]
+            if cc >= 0:
+                J[i, cc] += sign * nx
+                J[i, cc + 1] += sign * ny
+                J[i, cc + 2] += sign * (rx * ny - ry * nx)
+                J[k + i, cc] += sign * tx
+                J[k + i, cc + 1] += sign * ty
+                J[k + i, cc + 2] += sign * (rx * ty - ry * tx)
+    minv = np.empty(n_cols)
+    for q in range(nd):
+        minv[3 * q] = minv[3 * q + 1] = inv_mass[dyn[q]]
+        minv[3 * q + 2] = inv_inertia[dyn[q]]
+    for q in range(nd):
+        i = dyn[q]
+        dydt[2 * q], dydt[2 * q + 1] = vel[i, 0], vel[i, 1]
+        dydt[2 * nd + q] = om[i]
+        dydt[3 * nd + 2 * q], dydt[3 * nd + 2 * q + 1] = acc[i, 0], acc[i, 1]
+        dydt[5 * nd + q] = 0.0
+    if k:
+        rows_friction = np.empty(k, np.int64)
+        slave = np.empty(k)
+        for i in range(k):
+            rows_friction[i] = (BOX_ROW if friction[i] == STICK else
+                                SLAVED_ROW if friction[i] == SLIDE else 0)
+            slave[i] = -sigma[i] * mu_d[i]
+        W = (J * minv) @ J.T
+        A, P, rows, _, _, _ = reduce_lcp(W, rows_friction, np.zeros(k), np.zeros(k), slave)
+        x = np.linalg.lstsq(A, -b_full[rows], 1e-12)[0]
+        f[:] = P @ x
+        dv = minv * (J.T @ f)
+        for q in range(nd):
+            dydt[3 * nd + 2 * q] += dv[3 * q]
+            dydt[3 * nd + 2 * q + 1] += dv[3 * q + 1]
+            dydt[5 * nd + q] += dv[3 * q + 2]
+    j = 0
+    for i in range(k):
+        g[j] = f[i] / force_scale
+        j += 1
+    sum_n = np.zeros(n_groups)
+    sum_t = np.zeros(n_groups)
+    for i in range(k):
+        if group[i] >= 0:
+            sum_n[group[i]] += f[i] * mu_s[i]
+            sum_t[group[i]] += f[k + i]
+    for q in range(n_groups):
+        g[j] = (sum_n[q] - abs(sum_t[q])) / force_scale
+        j += 1
+    for i in range(k):
+        if friction[i] == SLIDE:
+            g[j] = sigma[i] * v_t[i] / speed_scale
+            j += 1
+    for i in range(k):
+        g[j] = params[i]
+        j += 1
+    for i in range(k):
+        g[j] = 1.0 - params[i]
+        j += 1
+    cv_body, cv_local, cp_body, cp_start, cp_end = cands
+    for i in range(cv_body.shape[0]):
+        g[j] = _vertex_piece_gap(pos, ang, cv_body[i], cv_local[i], cp_body[i], cp_start[i],
+                                 cp_end[i], verts, normals) / gap_scale
+        j += 1
+
+
+@numba.njit(**_JIT)
+def mode_rhs(t, y, spec, n_events, pos, ang, vel, om):
+    """``(dy/dt, event functions, stacked contact forces)`` of the held mode at (t, y);
+    ``pos, ang, vel, om`` receive every body's state."""
+    acc = np.empty((pos.shape[0], 2))
+    dydt = np.empty(y.shape[0])
+    g = np.empty(n_events)
+    f = np.zeros(2 * spec[10][0].shape[0])
+    _mode_rhs(t, y, spec, pos, ang, vel, om, acc, dydt, g, f)
+    return dydt, g, f
+
+
+@numba.njit(**_JIT)
+def dopri_step(t, y, h, k0, spec, n_events, tol_scale, pos, ang, vel, om):
+    """One Dormand-Prince 5(4) step of the held mode from (t, y) with derivative k0:
+    ``(y_new, error norm, derivative at the end, event functions and forces at the end)``."""
+    n = y.shape[0]
+    acc = np.empty((pos.shape[0], 2))
+    ks = np.empty((7, n))
+    ks[0] = k0
+    g = np.empty(n_events)
+    f = np.zeros(2 * spec[10][0].shape[0])
+    yi = np.empty(n)
+    for i in range(1, 7):
+        for q in range(n):
+            s = 0.0
+            for j in range(i):
+                s += _DP_A[i, j] * ks[j, q]
+            yi[q] = y[q] + h * s
+        _mode_rhs(t + _DP_C[i] * h, yi, spec, pos, ang, vel, om, acc, ks[i], g, f)
+    err = 0.0
+    for q in range(n):
+        e = 0.0
+        for j in range(7):
+            e += _DP_E[j] * ks[j, q]
+        err += (h * e / tol_scale[q]) ** 2
+    err = math.sqrt(err / n) if n else 0.0
+    return yi.copy(), err, ks[6].copy(), g, f
+
+
+@numba.njit(**_JIT)
+def held_geometry(pos, ang, c_a, c_b, vloc, q0loc, q1loc, nloc):
+    """World point, normal, gap and edge parameter of held contacts at (pos, ang)."""
+    k = c_a.shape[0]
+    point = np.empty((k, 2))
+    normal = np.empty((k, 2))
+    gap = np.empty(k)
+    param = np.empty(k)
+    for i in range(k):
+        a, b = c_a[i], c_b[i]
+        px, py = _world_point(pos, ang, a, vloc[i])
+        q0x, q0y = _world_point(pos, ang, b, q0loc[i])
+        q1x, q1y = _world_point(pos, ang, b, q1loc[i])
+        cb, sb = math.cos(ang[b]), math.sin(ang[b])
+        nx, ny = cb * nloc[i, 0] - sb * nloc[i, 1], sb * nloc[i, 0] + cb * nloc[i, 1]
+        ex, ey = q1x - q0x, q1y - q0y
+        point[i, 0], point[i, 1], normal[i, 0], normal[i, 1] = px, py, nx, ny
+        gap[i] = nx * (px - q0x) + ny * (py - q0y)
+        param[i] = ((px - q0x) * ex + (py - q0y) * ey) / (ex * ex + ey * ey)
+    return point, normal, gap, param
+
+
+@numba.njit(**_JIT)
+def impact_rhs(v_n, v_t, restitution, rest_speed):
+    """Right-hand side of the impulse LCP: ``w_N = v'_N + e v_N`` (plastic below the rest
+    speed, no restitution for separating contacts), ``w_T = v'_T``."""
+    k = v_n.shape[0]
+    b = np.empty(2 * k)
+    for i in range(k):
+        e = restitution[i] if -v_n[i] > rest_speed else 0.0
+        b[i] = (1.0 + e) * v_n[i] if v_n[i] < 0.0 else v_n[i]
+        b[k + i] = v_t[i]
+    return b
+
+
+@numba.njit(**_JIT)
+def impulse_effect(J, minv, W, p, v_n, v_t):
+    """Velocity change ``(nb, 3)`` of stacked impulses p, and the kinetic energy they add
+    against its scale (gain, |p| . |v|)."""
+    v_pre = np.concatenate((v_n, v_t))
+    gain = p @ v_pre + 0.5 * p @ (W @ p)
+    scale = np.abs(p) @ np.abs(v_pre)
+    dv = (minv * (J.T @ p)).reshape(-1, 3)
+    return dv, gain, scale
