@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from feeder_sim._kernels import island_groups
 from feeder_sim.collision import Contacts
 from feeder_sim.lcp import FrictionalLCP
 from feeder_sim.world import cross2, mix, perp, State, World
@@ -79,31 +80,15 @@ def islands(world: World, cs: ContactSet) -> list[tuple[np.ndarray, np.ndarray]]
 
     Static and kinematic bodies do not join islands: their motion is known, so two parts
     touching only the track are solved apart. Returns (bodies, contact indices) per island
-    that has at least one contact.
+    that has at least one contact, islands ordered by their lowest body index, bodies and
+    contact indices ascending.
     """
-    n = world.n
-    parent = np.arange(n)
-
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    dyn = world.dynamic
-    a, b = cs.contacts.body_a, cs.contacts.body_b
-    for i, j in zip(a[dyn[a] & dyn[b]], b[dyn[a] & dyn[b]]):
-        ri, rj = find(int(i)), find(int(j))
-        if ri != rj:
-            parent[max(ri, rj)] = min(ri, rj)
-    owner = np.where(dyn[a], a, b)
-    roots = np.array([find(int(i)) for i in owner], dtype=int)
-    out = []
-    for root in np.unique(roots):
-        idx = np.flatnonzero(roots == root)
-        bodies = np.unique(np.concatenate([a[idx], b[idx]]))
-        out.append((bodies[dyn[bodies]], idx))
-    return out
+    if cs.n == 0:
+        return []
+    order, starts, bodies, body_starts = island_groups(world.n, world.dynamic,
+                                                       cs.contacts.body_a, cs.contacts.body_b)
+    return [(bodies[body_starts[i]:body_starts[i + 1]], order[starts[i]:starts[i + 1]])
+            for i in range(len(starts) - 1)]
 
 
 @dataclass
@@ -198,17 +183,46 @@ class SolverStats:
     impacts: int = 0
     events: int = 0
     energy_fixes: int = 0
+    islands: int = 0           # islands with contacts, summed over steps (time stepping)
+    pgs_solves: int = 0        # LCPs answered by the large-island projected Gauss-Seidel
+    max_pgs_velocity_residual_mps: float = 0.0   # worst PGS answer, m/s (see _kernels)
+    lcp_rows: int = 0          # rows of the non-trivial LCPs, summed
+    max_lcp_rows: int = 0      # rows of the largest non-trivial LCP
     messages: list = field(default_factory=list)
 
     def record(self, result) -> None:
         self.lcp_solves += 1
-        self.trivial_solves += result.method == 'trivial'
+        trivial = result.method == 'trivial'
+        self.trivial_solves += trivial
+        if not trivial:
+            m = len(result.x)
+            self.lcp_rows += m
+            if m > self.max_lcp_rows:
+                self.max_lcp_rows = m
         self.pivots += result.pivots
         self.fallbacks += result.fallbacks
         self.unconverged += not result.converged
         self.max_residual = max(self.max_residual, float(result.residual))
         if result.message and len(self.messages) < 20:
             self.messages.append(result.message)
+
+    def record_batch(self, rows: np.ndarray, pivots: np.ndarray, residual: np.ndarray,
+                     converged: np.ndarray, method: str) -> None:
+        """Several non-trivial answers at once (messages are the caller's business)."""
+        n = len(rows)
+        if not n:
+            return
+        self.lcp_solves += n
+        self.lcp_rows += int(rows.sum())
+        self.max_lcp_rows = max(self.max_lcp_rows, int(rows.max()))
+        self.pivots += int(pivots.sum())
+        self.unconverged += int(n - np.count_nonzero(converged))
+        self.max_residual = max(self.max_residual, float(residual.max()))
+
+    def record_trivial(self, count: int) -> None:
+        """``count`` problems answered by x = 0 (every normal row has b >= 0)."""
+        self.lcp_solves += count
+        self.trivial_solves += count
 
     def as_dict(self) -> dict:
         return {k: v for k, v in self.__dict__.items()}
