@@ -85,3 +85,12 @@ def test_bad_input_is_one_clear_line(args, message):
     assert proc.returncode == 2
     assert 'Traceback' not in proc.stderr
     assert message in proc.stderr
+
+
+@pytest.mark.parametrize('method', ['event_driven', 'time_stepping'])
+def test_two_runs_give_identical_logs(tmp_path, method):
+    paths = [tmp_path / f'{k}.mcap' for k in range(2)]
+    for path in paths:
+        assert main(['-q', 'run', 'track_one_box', '--duration', '0.05', '--method', method,
+                     '--time-step', '1e-4', '--record', str(path)]) == 0
+    assert paths[0].read_bytes() == paths[1].read_bytes()
