@@ -17,7 +17,7 @@ setup(
         (os.path.join('share', package_name, 'config'), glob('config/*.yaml')),
     ],
     python_requires='>=3.11',
-    install_requires=['setuptools', 'numpy>=1.26', 'scipy>=1.11', 'pyyaml>=6',
+    install_requires=['setuptools', 'numpy>=1.26', 'scipy>=1.11', 'numba>=0.60', 'pyyaml>=6',
                       'matplotlib>=3.8', 'mcap>=1.2', 'mcap-ros2-support>=0.5'],
     extras_require={
         'ros': ros,
