@@ -2,11 +2,13 @@
 
 Moreau's midpoint scheme: positions move half a step, contacts are found there, one
 frictional impulse LCP per island gives the end-of-step velocities, positions move the other
-half step with them (Moreau–Jean). A contact takes part when it touches at the midpoint or
-would close its gap by the end of the step, with Newton's law ``v'_N + e min(v_N, 0) >= 0`` on
-the pre-step approach speed: a fast part stops short of a thin wall instead of tunnelling. The
-scheme lets a landing vertex sink by up to ``h |v_N| / 2``; that penetration is removed by a
-position projection after the step, never by a velocity bias, so no energy is injected.
+half step with them (Moreau–Jean). In islands solved by pivoting a contact takes part when it
+touches at the midpoint or would close its gap by the end of the step, with Newton's law
+``v'_N + e min(v_N, 0) >= 0`` on the pre-step approach speed: a fast part stops short of a thin
+wall instead of tunnelling. The scheme lets a landing vertex sink by up to ``h |v_N| / 2``;
+that penetration is removed by a position projection after the step, never by a velocity
+bias, so a landing gains no energy. Piles (islands above ``direct_max_rows``, solved by PGS)
+keep speculative rows ``v'_N + 2 gap / h >= 0`` and a velocity push-out of deep penetration.
 
 Friction follows Kawachi: static bounds ``mu_s p_N`` when the pre-step slip is zero; when it
 slides, a one-sided bound ``mu_d p_N`` that stops the slip but never reverses it. A static
@@ -79,7 +81,9 @@ class StepContacts:
 @dataclass
 class TimeStepSettings:
     touch_m: float = 1e-9          # gap below which a contact is touching
-    slop_m: float = 1e-9           # penetration left after position projection
+    projection_slop_m: float = 1e-9  # penetration left by the projection (small islands)
+    slop_m: float = 1e-7           # penetration tolerated before push-out (piles)
+    push_out: float = 0.2          # fraction of that penetration removed per step (piles)
     slip_tol_mps: float = 1e-9     # |v_T| below which a contact is sticking
     lcp_tol: float = 1e-9          # lcp.residual the Dantzig path must reach
     direct_max_rows: int = 48      # islands with more LCP rows go to projected Gauss-Seidel
@@ -198,6 +202,7 @@ class TimeStepper:
         self._driven = world.driven
         self._g = float(np.linalg.norm(world.gravity))
         self._warm = _Warm(len(world.shapes.vertices))
+        self._projected = np.zeros(0, bool)
 
     def margin(self, state: State, h: float) -> float:
         """Distance a vertex can close on any edge in one step (m): contacts to look at."""
@@ -241,8 +246,8 @@ class TimeStepper:
         drv = self._driven
         state.position[drv] = end.position[drv]
         state.velocity[drv] = end.velocity[drv]
-        if report is not None:
-            self._project(report.cs, state)
+        if report is not None and self._projected.any():
+            self._project(report.cs, state, self._projected)
         self.stats.steps += 1
         return report
 
@@ -258,7 +263,7 @@ class TimeStepper:
         spin = float((state.omega[dyn] ** 2 * self._radius[dyn]).max(initial=0.0))
         return max(self.settings.slip_tol_mps, h * spin)
 
-    def _project(self, cs: ContactSet, state: State) -> None:
+    def _project(self, cs: ContactSet, state: State, mask: np.ndarray) -> None:
         """Move penetrating bodies out along their contact normals; velocities are untouched.
 
         The midpoint scheme lets a landing vertex sink by up to h |v_N| / 2. Correcting that
@@ -268,7 +273,7 @@ class TimeStepper:
         """
         w, st = self.world, self.settings
         gap, _ = evaluate_gaps(w.shapes, cs.contacts, state.position, state.angle)
-        deep = gap < -st.slop_m
+        deep = (gap < -st.projection_slop_m) & mask
         if not deep.any():
             return
         for bodies, idx in islands(w, cs):
@@ -277,8 +282,8 @@ class TimeStepper:
             jac = island_jacobian(w, cs.subset(idx), bodies)
             k = len(idx)
             W = jac.delassus()[:k, :k]
-            problem = lcp.FrictionalLCP(W, gap[idx] + st.slop_m, np.full(k, -1), np.zeros(k),
-                                        np.zeros(k))
+            problem = lcp.FrictionalLCP(W, gap[idx] + st.projection_slop_m, np.full(k, -1),
+                                        np.zeros(k), np.zeros(k))
             result = lcp.solve(problem, tol=st.lcp_tol)
             self.stats.record(result)
             move = jac.velocity_change(np.concatenate([result.x, np.zeros(k)]))
@@ -296,23 +301,37 @@ class TimeStepper:
         v_n_free, v_t_free = K.contact_velocities(contacts.body_a, contacts.body_b,
                                                   contacts.normal, cs.r_a, cs.r_b,
                                                   end.velocity, end.omega)
-        # Moreau-Jean index set: a contact takes part when it touches at the midpoint or would
-        # close its gap by the end of the step. A fast part stops short of a thin wall instead
-        # of crossing it, and no velocity is ever spent pushing out of penetration.
+        # Small islands (solved exactly by pivoting) use the Moreau-Jean index set: a contact
+        # takes part when it touches at the midpoint or would close its gap by the end of the
+        # step, under Newton's law, and penetration is removed afterwards by a position
+        # projection, so no velocity is spent on it. Piles (islands above direct_max_rows,
+        # solved by PGS) keep speculative rows and a velocity push-out, which PGS handles
+        # robustly at their size.
         gap = contacts.gap
-        active = np.flatnonzero((gap <= st.touch_m) | (gap + 0.5 * h * v_n_free <= st.touch_m))
-        if not len(active):
+        order0, starts0, _, _ = island_groups(w.n, self._dyn, contacts.body_a, contacts.body_b)
+        size = np.empty(contacts.n, np.int64)
+        size[order0] = np.repeat(np.diff(starts0), np.diff(starts0))
+        pile = 2 * size > st.direct_max_rows
+        keep = np.flatnonzero(pile | (gap <= st.touch_m)
+                              | (gap + 0.5 * h * v_n_free <= st.touch_m))
+        if not len(keep):
             return None
-        if len(active) < contacts.n:
-            contacts, cs = contacts.take(active), cs.subset(active)
-            v_n_free, v_t_free, gap = v_n_free[active], v_t_free[active], gap[active]
+        if len(keep) < contacts.n:
+            contacts, cs = contacts.take(keep), cs.subset(keep)
+            v_n_free, v_t_free, gap, pile = (v_n_free[keep], v_t_free[keep], gap[keep],
+                                             pile[keep])
         c = contacts
         a, b = c.body_a, c.body_b
         stats.max_penetration_m = max(stats.max_penetration_m, float(-gap.min()))
         v_n_pre, v_t_pre = K.contact_velocities(a, b, c.normal, cs.r_a, cs.r_b,
                                                 state.velocity, state.omega)
-        colliding = v_n_pre < -2.0 * self._g * h
-        b_n = v_n_free + cs.restitution * np.minimum(v_n_pre, 0.0)
+        touching = gap <= st.touch_m
+        colliding = (touching | ~pile) & (v_n_pre < -2.0 * self._g * h)
+        newton = v_n_free + cs.restitution * np.minimum(v_n_pre, 0.0)
+        push = st.push_out * np.maximum(-gap - st.slop_m, 0.0) * 2.0 / h
+        b_n = np.where(~pile, newton,
+                       np.where(touching, newton - push, v_n_free + 2.0 * gap / h))
+        self._projected = ~pile
         slip_tol = self._slip_tol(state, h)
         friction, mu_lo, mu_hi = friction_rows(cs, v_t_pre, colliding,
                                                self.spec.friction_impulse, slip_tol)
