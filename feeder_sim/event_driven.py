@@ -219,9 +219,7 @@ class EventDriven:
         dyn = np.flatnonzero(world.dynamic)
         self._dyn = dyn
         sh = world.shapes
-        radius = np.zeros(world.n)
-        np.maximum.at(radius, sh.piece_body, sh.radius)
-        self._radius = radius
+        radius = self._radius = world.radius
         length = float(np.max(radius[dyn], initial=1e-2))
         g = float(np.linalg.norm(world.gravity)) or 9.81
         self._g = g

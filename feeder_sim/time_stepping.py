@@ -193,9 +193,7 @@ class TimeStepper:
         self.spec = spec
         self.stats = stats
         self.settings = settings or TimeStepSettings()
-        self._radius = np.zeros(world.n)
-        np.maximum.at(self._radius, world.shapes.piece_body, world.shapes.radius)
-        # fixed for the life of the world; cached because the World properties rebuild them
+        self._radius = world.radius
         self._dyn = world.dynamic
         self._dyn_idx = np.flatnonzero(self._dyn)
         self._kin_idx = np.flatnonzero(~self._dyn)

@@ -13,6 +13,7 @@ the body frame of the scene file, related by ``origin = com - R(angle) @ com_loc
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 import math
 
 import numpy as np
@@ -144,14 +145,22 @@ class World:
     def n(self) -> int:
         return len(self.names)
 
-    @property
+    # Derived once: the stepping methods read these on every step.
+    @cached_property
     def dynamic(self) -> np.ndarray:
         return self.body_type == DYNAMIC
 
-    @property
+    @cached_property
     def driven(self) -> np.ndarray:
         """Indices of bodies that have a vibration drive."""
         return np.array([i for i, d in enumerate(self.drives) if d is not None], dtype=int)
+
+    @cached_property
+    def radius(self) -> np.ndarray:
+        """(n,) largest distance of a body's vertices from its centre of mass, m."""
+        radius = np.zeros(self.n)
+        np.maximum.at(radius, self.shapes.piece_body, self.shapes.radius)
+        return radius
 
     def initial_state(self) -> State:
         velocity = np.array([b.velocity for b in self.scene.bodies], float).reshape(self.n, 3)
