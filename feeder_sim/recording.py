@@ -537,33 +537,15 @@ class McapRecorder:
         if not isinstance(name, str):
             raise TypeError('metadata name must be a str')
         data = _check_metadata(data)
-        with self._lock:
-            self._check_open()
-            self._busy = True
-            try:
-                self._writer.add_metadata(name, data)
-                self._file.flush()
-            except OSError as exc:
-                raise self._fail(exc) from exc
-            finally:
-                self._busy = False
-            if self._close_requested:
-                self._close_locked()
+        with self._writing():
+            self._writer.add_metadata(name, data)
+            self._file.flush()
 
     def flush(self) -> None:
         """End the open chunk (if it holds messages) and hand everything to the OS."""
-        with self._lock:
-            self._check_open()
-            self._busy = True
-            try:
-                self._writer.flush()
-                self._last_flush = time.monotonic()
-            except OSError as exc:
-                raise self._fail(exc) from exc
-            finally:
-                self._busy = False
-            if self._close_requested:
-                self._close_locked()
+        with self._writing():
+            self._writer.flush()
+            self._last_flush = time.monotonic()
 
     # -- closing -----------------------------------------------------------------------------
 
@@ -622,31 +604,37 @@ class McapRecorder:
                 f'{self._error.strerror or self._error}')
         raise RecordingError(f'MCAP recording {self._path!r} is closed')
 
-    def _emit(self, channel_id: int, t_ns: int, payload: bytes) -> None:
+    @contextlib.contextmanager
+    def _writing(self) -> Iterator[None]:
+        """One write under the lock. An OS error marks the recording failed (what was flushed
+        stays readable); a close requested meanwhile (a signal handler) runs right after."""
         with self._lock:
             self._check_open()
             self._busy = True
             try:
-                sequence = (self._sequence[channel_id] + 1) & 0xFFFFFFFF
-                self._sequence[channel_id] = sequence
-                self._writer.add_message(
-                    channel_id, log_time=t_ns, data=payload, publish_time=t_ns,
-                    sequence=sequence)
-                self._messages += 1
-                if self._file.pending:
-                    # The writer just finished a chunk and its message indexes.
-                    self._file.flush()
-                    self._last_flush = time.monotonic()
-                elif self._flush_interval is not None and (
-                        time.monotonic() - self._last_flush >= self._flush_interval):
-                    self._writer.flush()
-                    self._last_flush = time.monotonic()
+                yield
             except OSError as exc:
                 raise self._fail(exc) from exc
             finally:
                 self._busy = False
             if self._close_requested:
                 self._close_locked()
+
+    def _emit(self, channel_id: int, t_ns: int, payload: bytes) -> None:
+        with self._writing():
+            sequence = (self._sequence[channel_id] + 1) & 0xFFFFFFFF
+            self._sequence[channel_id] = sequence
+            self._writer.add_message(
+                channel_id, log_time=t_ns, data=payload, publish_time=t_ns, sequence=sequence)
+            self._messages += 1
+            if self._file.pending:
+                # The writer just finished a chunk and its message indexes.
+                self._file.flush()
+                self._last_flush = time.monotonic()
+            elif self._flush_interval is not None and (
+                    time.monotonic() - self._last_flush >= self._flush_interval):
+                self._writer.flush()
+                self._last_flush = time.monotonic()
 
     def _fail(self, exc: OSError) -> RecordingError:
         error = exc if isinstance(exc, RecordingError) else _io_error(
