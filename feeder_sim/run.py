@@ -17,6 +17,7 @@ import time
 import numpy as np
 
 from feeder_sim import __version__
+from feeder_sim.scene import scene_to_dict
 from feeder_sim.simulator import Simulator
 
 log = logging.getLogger('feeder_sim')
@@ -49,6 +50,23 @@ def record_frame(sim: Simulator, recorder, t_ns: int) -> None:
     recorder.write_track_state(t_ns, names, s, v)
 
 
+def recording_metadata(sim: Simulator) -> dict[str, str]:
+    """What a log needs besides its messages: the scene (as JSON) and how it was solved."""
+    return {'scene': sim.scene.name, 'method': sim.method, 'feeder_sim': __version__,
+            'scene_json': json.dumps(scene_to_dict(sim.scene), separators=(',', ':'))}
+
+
+def open_recorder(sim: Simulator, path: str | os.PathLike, **options):
+    """An MCAP recorder for ``sim`` holding the scene metadata and the vibration in force."""
+    from feeder_sim.recording import McapRecorder
+    recorder = McapRecorder(path, metadata=recording_metadata(sim), **options)
+    for i in sim.world.driven:
+        d = sim.world.drives[i]
+        recorder.write_vibration_cmd(int(round(sim.t * 1e9)), d.amplitude_m, d.frequency_hz)
+        break
+    return recorder
+
+
 @dataclass
 class RunResult:
     summary: dict
@@ -69,16 +87,7 @@ def run(sim: Simulator, duration_s: float, *, publish_rate_hz: float = 100.0,
         raise ValueError(f'duration must be a positive number of seconds, got {duration_s!r}')
     if not (publish_rate_hz > 0 and math.isfinite(publish_rate_hz)):
         raise ValueError(f'publish rate must be a positive number of Hz, got {publish_rate_hz!r}')
-    recorder = None
-    if record is not None:
-        from feeder_sim.recording import McapRecorder
-        recorder = McapRecorder(record, metadata={'scene': sim.scene.name,
-                                                  'method': sim.method,
-                                                  'feeder_sim': __version__})
-        for i in sim.world.driven:
-            d = sim.world.drives[i]
-            recorder.write_vibration_cmd(0, d.amplitude_m, d.frequency_hz)
-            break
+    recorder = open_recorder(sim, record) if record is not None else None
     names = sim.part_poses()[0]
     traj = Trajectory(names)
     t0 = sim.t
