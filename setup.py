@@ -5,7 +5,12 @@ from setuptools import find_packages, setup
 
 package_name = 'feeder_sim'
 
-ros = ['ros-jazzy-rclpy', 'ros-jazzy-common-interfaces', 'ros-jazzy-rmw-fastrtps-cpp']
+ros = ['ros-jazzy-rclpy', 'ros-jazzy-common-interfaces', 'ros-jazzy-rmw-fastrtps-cpp',
+       'ros-jazzy-ament-index-python']
+replay = ['rerun-sdk==0.41.0']
+# colcon from PyPI: the packaging test builds this package in a workspace as ROS users do.
+colcon = ['colcon-core', 'colcon-ros', 'colcon-python-setup-py', 'colcon-library-path',
+          'colcon-bash', 'ros-jazzy-ament-package']
 
 setup(
     name=package_name,
@@ -21,7 +26,9 @@ setup(
                       'matplotlib>=3.8', 'mcap>=1.2', 'mcap-ros2-support>=0.5'],
     extras_require={
         'ros': ros,
-        'test': ros + ['pytest>=8', 'pytest-timeout>=2.3', 'hypothesis>=6.100', 'ruff>=0.6'],
+        'replay': replay,
+        'test': ros + replay + colcon + ['pytest>=8', 'pytest-timeout>=2.3',
+                                         'hypothesis>=6.100', 'ruff>=0.6'],
     },
     zip_safe=True,
     maintainer='feeder_sim maintainers',
@@ -32,6 +39,7 @@ setup(
     entry_points={
         'console_scripts': [
             'feeder-sim = feeder_sim.cli:main',
+            'sim_node = feeder_sim.sim_node:main',
         ],
     },
 )

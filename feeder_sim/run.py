@@ -18,7 +18,7 @@ import numpy as np
 
 from feeder_sim import __version__
 from feeder_sim.scene import scene_to_dict
-from feeder_sim.simulator import Simulator
+from feeder_sim.simulator import ContactReport, Simulator
 
 log = logging.getLogger('feeder_sim')
 
@@ -38,11 +38,16 @@ class Trajectory:
                 np.asarray(self.speed).reshape(-1, n))
 
 
-def record_frame(sim: Simulator, recorder, t_ns: int) -> None:
-    """Write one frame of the interfaces' MCAP topics at simulated time ``t_ns``."""
+def record_frame(sim: Simulator, recorder, t_ns: int, contacts: ContactReport | None = None
+                 ) -> None:
+    """Write one frame of the interfaces' MCAP topics at simulated time ``t_ns``.
+
+    ``contacts`` is the frame's contact report; without it the simulator's is taken.
+    """
     names, origin, angle = sim.part_poses()
     s, v = sim.track_coordinates()
-    contacts = sim.take_contacts()
+    if contacts is None:
+        contacts = sim.take_contacts()
     recorder.write_clock(t_ns)
     recorder.write_part_poses(t_ns, origin, angle)
     recorder.write_contacts(t_ns, contacts.point, contacts.normal, contacts.normal_impulse,

@@ -104,3 +104,34 @@ class Drive:
         amplitude_m, frequency_hz, phase_rad = self._initial
         self._segments = [_Segment(0.0, amplitude_m, frequency_hz, phase_rad)]
         self.amplitude_m, self.frequency_hz = amplitude_m, frequency_hz
+
+
+@dataclass(frozen=True)
+class CommandLimits:
+    """Bounds a vibration command must respect; anything outside is a mistake, not a request."""
+
+    max_amplitude_m: float = 0.1
+    max_frequency_hz: float = 1000.0
+
+
+def parse_command(data, limits: CommandLimits = CommandLimits()) -> tuple[float, float]:
+    """``(amplitude_m, frequency_hz)`` from a ``[amplitude_m, frequency_hz]`` command.
+
+    Raises ``ValueError`` saying what is wrong and what is expected, so that a node can reject
+    the command with that text and keep the previous one.
+    """
+    values = list(data)
+    if len(values) != 2:
+        raise ValueError(f'expected data = [amplitude_m, frequency_hz], got {len(values)} '
+                         'values')
+    amplitude_m, frequency_hz = (float(v) for v in values)
+    for name, value, bound, unit in (
+            ('amplitude', amplitude_m, limits.max_amplitude_m, 'm'),
+            ('frequency', frequency_hz, limits.max_frequency_hz, 'Hz')):
+        if not math.isfinite(value):
+            raise ValueError(f'{name} is {value!r}; it must be a finite number')
+        if value < 0.0:
+            raise ValueError(f'{name} {value:g} {unit} is negative; it must be >= 0')
+        if value > bound:
+            raise ValueError(f'{name} {value:g} {unit} exceeds the limit {bound:g} {unit}')
+    return amplitude_m, frequency_hz

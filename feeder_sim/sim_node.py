@@ -1,0 +1,472 @@
+"""``ros2 run feeder_sim sim_node``: the simulator as a ROS 2 node that owns ``/clock``.
+
+The node is a thin shell over :class:`feeder_sim.simulator.Simulator`. Simulated time advances
+in frames of ``1 / publish_rate`` seconds; after each frame the node publishes the state,
+stamped with simulated time, and appends it to the MCAP log. Physics never reads a ROS clock:
+the wall clock only paces the frames (``real_time_factor``; 0 runs as fast as possible), so the
+same scene with the same commands at the same simulated times gives the same log.
+
+Topics (relative to the node's namespace; ``~`` is the node name)::
+
+    /clock                  rosgraph_msgs/Clock           simulated time, once per frame
+    ~/part_poses            geometry_msgs/PoseArray       one pose per part, scene order
+    ~/contacts              sensor_msgs/PointCloud2       one point per contact, impulses N s
+    ~/part_impulses         sensor_msgs/PointCloud2       impulse totals per part
+    ~/track_state           sensor_msgs/JointState        position/speed along the track
+    ~/markers               visualization_msgs/MarkerArray  part outlines and impulse arrows
+    ~/geometry              visualization_msgs/MarkerArray  static bodies (latched)
+    /diagnostics            diagnostic_msgs/DiagnosticArray real-time factor, solver health
+    vibration_cmd (in)      std_msgs/Float64MultiArray    [amplitude_m, frequency_hz]
+
+Services: ``~/reset`` (Trigger), ``~/pause`` (SetBool), ``~/step`` (Trigger, while paused).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import os
+import signal
+import sys
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PoseArray
+import numpy as np
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
+import rclpy
+from rclpy._rclpy_pybind11 import RCLError
+from rclpy.clock import Clock, ClockType
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos_overriding_options import QoSOverridingOptions
+from rosgraph_msgs.msg import Clock as ClockMsg
+from sensor_msgs.msg import JointState, PointCloud2
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import SetBool, Trigger
+from visualization_msgs.msg import MarkerArray
+
+from feeder_sim import ros_messages as msgs
+from feeder_sim.impulses import part_impulses
+from feeder_sim.recording import RecordingError
+from feeder_sim.run import open_recorder, record_frame
+from feeder_sim.scene import SceneError
+from feeder_sim.simulator import METHODS, Simulator
+from feeder_sim.vibration import CommandLimits, parse_command
+from feeder_sim.world import DYNAMIC
+
+NODE_NAME = 'feeder_sim'
+_NS = 1_000_000_000
+_WALL_BUDGET_S = 0.05      # longest stretch of physics before commands and services are served
+_MAX_LAG_S = 0.25          # wall time behind schedule after which pacing forgets the debt
+
+
+@dataclass(frozen=True)
+class _Param:
+    name: str
+    default: object
+    description: str
+    read_only: bool = True
+    low: float | None = None
+    high: float | None = None
+
+
+PARAMETERS = (
+    _Param('scene', 'track_one_box', 'scene file path, or the name of a scene shipped in config/'),
+    _Param('record_path', '', 'MCAP file to write; empty = no recording'),
+    _Param('real_time_factor', 1.0, 'simulated seconds per wall second; 0 = as fast as possible',
+           read_only=False, low=0.0, high=1000.0),
+    _Param('duration', 0.0, 'stop cleanly after this much simulated time (s); 0 = never',
+           low=0.0, high=1e9),
+    _Param('publish_rate', 100.0, 'frames per simulated second: state is published and recorded '
+           'once per frame', low=0.1, high=100000.0),
+    _Param('method', '', "override solver.method of the scene ('' keeps the scene's)"),
+    _Param('time_step', 0.0, "override solver.time_step of the scene (s); 0 keeps the scene's",
+           low=0.0, high=1.0),
+    _Param('frame_id', 'world', 'frame of every published pose, point and marker'),
+    _Param('start_paused', False, 'start paused (use ~/pause or ~/step)'),
+    _Param('steps_per_call', 1, 'frames advanced by one ~/step call', read_only=False,
+           low=1, high=1000000),
+    _Param('max_amplitude_m', 0.1, 'largest vibration amplitude accepted on vibration_cmd (m)',
+           read_only=False, low=0.0, high=10.0),
+    _Param('max_frequency_hz', 1000.0, 'largest vibration frequency accepted (Hz)',
+           read_only=False, low=0.0, high=1e6),
+    _Param('on_record_error', 'continue', "when the log cannot be written: 'continue' "
+           "simulating without it, or 'stop' the node (exit status 1)"),
+    _Param('record_flush_period', 1.0, 'wall seconds after which the open MCAP chunk is written '
+           'out, bounding what a hard kill loses', low=0.01, high=3600.0),
+    _Param('publish_markers', True, 'publish ~/markers (outlines and impulse arrows) each frame',
+           read_only=False),
+    _Param('impulse_marker_scale', 0.0, 'arrow length per impulse (m per N s); 0 = a part size '
+           "for a contact carrying one part's weight for one frame", read_only=False,
+           low=0.0, high=1e9),
+    _Param('diagnostics_period', 1.0, 'wall seconds between /diagnostics messages',
+           low=0.01, high=3600.0),
+)
+
+
+def _descriptor(p: _Param) -> ParameterDescriptor:
+    d = ParameterDescriptor(description=p.description, read_only=p.read_only)
+    if p.low is not None:
+        if isinstance(p.default, int) and not isinstance(p.default, bool):
+            d.integer_range = [IntegerRange(from_value=int(p.low), to_value=int(p.high), step=0)]
+        else:
+            d.floating_point_range = [FloatingPointRange(from_value=float(p.low),
+                                                         to_value=float(p.high), step=0.0)]
+    return d
+
+
+class SimNode(Node):
+    """The ``feeder_sim`` node. Construct after ``rclpy.init``; ``close()`` finalizes the log.
+
+    ``done`` becomes true when ``duration`` is reached (or the log failed with
+    ``on_record_error: stop``); ``exit_code`` is then what the process should return.
+    """
+
+    def __init__(self, **node_options) -> None:
+        super().__init__(NODE_NAME, **node_options)
+        for p in PARAMETERS:
+            self.declare_parameter(p.name, p.default, _descriptor(p))
+        value = {p.name: self.get_parameter(p.name).value for p in PARAMETERS}
+        if value['method'] and value['method'] not in METHODS:
+            raise ValueError(f"parameter method must be one of {', '.join(METHODS)} or '', got "
+                             f"{value['method']!r}")
+        if value['on_record_error'] not in ('continue', 'stop'):
+            raise ValueError("parameter on_record_error must be 'continue' or 'stop', got "
+                             f"{value['on_record_error']!r}")
+        self.sim = Simulator(value['scene'], method=value['method'] or None,
+                             time_step=value['time_step'] or None)
+        self.frame_id: str = value['frame_id']
+        self.period_ns = max(1, round(_NS / value['publish_rate']))
+        self.duration_ns = round(value['duration'] * _NS)
+        self.paused: bool = value['start_paused']
+        self.done = False
+        self.exit_code = 0
+        self.frames = 0
+        self.commands_accepted = 0
+        self.commands_rejected = 0
+        self._pending_command: tuple[float, float] | None = None
+        self._on_record_error = value['on_record_error']
+        self._rtf = value['real_time_factor']
+        self._limits = CommandLimits(value['max_amplitude_m'], value['max_frequency_hz'])
+        self._record_status = 'off'
+        self.recorder = None
+        if value['record_path']:
+            self._open_recording(value['record_path'], value['record_flush_period'])
+
+        world = self.sim.world
+        self._parts = self.sim.part_indices
+        self._others = np.flatnonzero(world.body_type != DYNAMIC)
+        self._outlines = msgs.Outlines([b.outlines for b in world.scene.bodies], world.names,
+                                       self.frame_id, self._line_width())
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+        overridable = QoSOverridingOptions.with_default_policies()
+
+        def stream() -> QoSProfile:
+            # A profile per publisher: rclpy writes QoS overrides into the object it is given.
+            return QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+
+        self.pub_clock = self.create_publisher(
+            ClockMsg, '/clock', QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE))
+        self.pub_poses = self.create_publisher(
+            PoseArray, '~/part_poses', stream(), qos_overriding_options=overridable)
+        self.pub_contacts = self.create_publisher(
+            PointCloud2, '~/contacts', stream(), qos_overriding_options=overridable)
+        self.pub_impulses = self.create_publisher(
+            PointCloud2, '~/part_impulses', stream(), qos_overriding_options=overridable)
+        self.pub_track = self.create_publisher(
+            JointState, '~/track_state', stream(), qos_overriding_options=overridable)
+        self.pub_markers = self.create_publisher(
+            MarkerArray, '~/markers', stream(), qos_overriding_options=overridable)
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.pub_geometry = self.create_publisher(MarkerArray, '~/geometry', latched)
+        self.pub_diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.create_subscription(Float64MultiArray, 'vibration_cmd', self._on_vibration_cmd,
+                                 QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE),
+                                 qos_overriding_options=overridable)
+        self.create_service(Trigger, '~/reset', self._on_reset)
+        self.create_service(SetBool, '~/pause', self._on_pause)
+        self.create_service(Trigger, '~/step', self._on_step)
+
+        # Pacing and diagnostics run on the steady clock: with use_sim_time set on this node
+        # a ROS-time timer would wait for the /clock the node itself has to publish.
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self._anchor()
+        self._diag_wall = time.perf_counter()
+        self._diag_sim_ns = self.t_ns
+        self._rtf_achieved = 0.0
+        self.create_timer(0.001, self._on_timer, clock=steady)
+        self.create_timer(value['diagnostics_period'], self._publish_diagnostics, clock=steady)
+        self._publish_geometry()
+        self._publish_frame(self.sim.take_contacts())
+        self.get_logger().info(
+            f"scene '{self.sim.scene.name}' ({self.sim.method}, {len(self._parts)} parts), "
+            f'{1e9 / self.period_ns:g} frames per simulated s, real-time factor {self._rtf:g}'
+            + (f', recording to {self.recorder.path}' if self.recorder else '')
+            + (', paused' if self.paused else ''))
+
+    # -- time ------------------------------------------------------------------------------
+
+    @property
+    def t_ns(self) -> int:
+        """Simulated time of the current frame, ns."""
+        return round(self.sim.t * _NS)
+
+    def _anchor(self) -> None:
+        self._anchor_wall = time.perf_counter()
+        self._anchor_sim_ns = self.t_ns
+
+    def _on_timer(self) -> None:
+        if self.paused or self.done:
+            return
+        start = time.perf_counter()
+        # The context goes invalid when SIGINT/SIGTERM arrive; stop publishing right there.
+        while not self.done and self.context.ok():
+            now = time.perf_counter()
+            if self._rtf > 0.0:
+                due_ns = self._anchor_sim_ns + self._rtf * (now - self._anchor_wall) * _NS
+                if self.t_ns + self.period_ns > due_ns:
+                    break
+                if (due_ns - self.t_ns) / _NS / self._rtf > _MAX_LAG_S:
+                    # Too slow for the requested factor: run flat out, without a debt to
+                    # repay later by running faster than asked.
+                    self._anchor()
+            if now - start > _WALL_BUDGET_S:
+                break
+            self.advance_frame()
+
+    def advance_frame(self) -> None:
+        """Apply the pending command, simulate one frame, publish and record it."""
+        if self._pending_command is not None:
+            amplitude_m, frequency_hz = self._pending_command
+            self._pending_command = None
+            self.sim.command_vibration(amplitude_m, frequency_hz)
+            self._record(lambda r: r.write_vibration_cmd(self.t_ns, amplitude_m, frequency_hz))
+        self.sim.advance((self.t_ns + self.period_ns) / _NS)
+        self.frames += 1
+        self._publish_frame(self.sim.take_contacts())
+        if self.duration_ns and self.t_ns >= self.duration_ns:
+            self.get_logger().info(f'duration reached: t = {self.sim.t:.6g} s simulated')
+            self.close()
+            self.done = True
+
+    # -- publishing ------------------------------------------------------------------------
+
+    def _publish_frame(self, contacts) -> None:
+        t_ns = self.t_ns
+        sim = self.sim
+        names, origin, angle = sim.part_poses()
+        s, v = sim.track_coordinates()
+        totals = part_impulses(contacts, self._parts, sim.state.position)
+        self.pub_clock.publish(msgs.clock(t_ns))
+        self.pub_poses.publish(msgs.pose_array(t_ns, origin, angle, self.frame_id))
+        self.pub_contacts.publish(msgs.contact_cloud(t_ns, contacts, self.frame_id))
+        self.pub_impulses.publish(msgs.part_impulse_cloud(t_ns, totals, sim.state.position,
+                                                          self.frame_id))
+        self.pub_track.publish(msgs.track_state(t_ns, names, s, v))
+        if self.get_parameter('publish_markers').value:
+            markers = self._outlines.markers(t_ns, self._parts, origin, angle)
+            markers += msgs.impulse_arrows(t_ns, contacts, self._impulse_scale(),
+                                           self.frame_id, 0.1 * self._line_width())
+            self.pub_markers.publish(msgs.marker_array(markers))
+        self._record(lambda r: record_frame(sim, r, t_ns, contacts))
+
+    def _publish_geometry(self) -> None:
+        origin, angle = self.sim.world.body_frame_pose(self.sim.state)
+        markers = self._outlines.markers(self.t_ns, self._others, origin[self._others],
+                                         angle[self._others], grey=True)
+        self.pub_geometry.publish(msgs.marker_array(markers))
+
+    def _line_width(self) -> float:
+        return 0.05 * float(np.median(self.sim.world.radius[self._parts])) if len(self._parts) \
+            else 1e-3
+
+    def _impulse_scale(self) -> float:
+        scale = self.get_parameter('impulse_marker_scale').value
+        if scale > 0.0 or not len(self._parts):
+            return scale
+        world = self.sim.world
+        weight_impulse = (float(np.median(world.mass[self._parts]))
+                          * max(float(np.linalg.norm(world.gravity)), 1e-3)
+                          * self.period_ns / _NS)
+        return 2.0 * float(np.median(world.radius[self._parts])) / weight_impulse
+
+    def _publish_diagnostics(self) -> None:
+        now = time.perf_counter()
+        wall = now - self._diag_wall
+        if wall > 0:
+            self._rtf_achieved = (self.t_ns - self._diag_sim_ns) / _NS / wall
+        self._diag_wall, self._diag_sim_ns = now, self.t_ns
+        stats = self.sim.stats
+        level, message = DiagnosticStatus.OK, 'running'
+        if self.paused:
+            message = 'paused'
+        if self.done:
+            message = 'finished'
+        if self._record_status.startswith('failed'):
+            level, message = DiagnosticStatus.ERROR, f'recording {self._record_status}'
+        elif stats.fallbacks or stats.unconverged:
+            level, message = DiagnosticStatus.WARN, (
+                f'{stats.fallbacks} solver fallbacks, {stats.unconverged} unconverged solves')
+        self.pub_diagnostics.publish(msgs.diagnostics(self.t_ns, 'feeder_sim: simulation', level,
+                                                      message, self.status()))
+
+    def status(self) -> dict[str, object]:
+        """What /diagnostics reports: pacing, solver health, commands, recording."""
+        stats = self.sim.stats
+        return {
+            'simulated_time_s': self.sim.t,
+            'real_time_factor_requested': float(self._rtf),
+            'real_time_factor_achieved': float(self._rtf_achieved),
+            'paused': self.paused,
+            'frames': self.frames,
+            'method': self.sim.method,
+            'lcp_solves': stats.lcp_solves,
+            'solver_fallbacks': stats.fallbacks,
+            'unconverged_solves': stats.unconverged,
+            'max_lcp_residual': float(stats.max_residual),
+            'max_penetration_m': float(stats.max_penetration_m),
+            'commands_accepted': self.commands_accepted,
+            'commands_rejected': self.commands_rejected,
+            'recording': self._record_status,
+        }
+
+    # -- recording -------------------------------------------------------------------------
+
+    def _open_recording(self, path: str, flush_period_s: float) -> None:
+        try:
+            directory = os.path.dirname(os.path.abspath(path))
+            os.makedirs(directory, exist_ok=True)
+            self.recorder = open_recorder(self.sim, path, flush_interval=flush_period_s)
+            self._record_status = f'ok: {path}'
+        except OSError as err:
+            self._recording_failed(err)
+
+    def _record(self, write) -> None:
+        if self.recorder is None:
+            return
+        try:
+            write(self.recorder)
+        except RecordingError as err:
+            self._recording_failed(err)
+
+    def _recording_failed(self, err: OSError) -> None:
+        self._record_status = f'failed: {err}'
+        if self.recorder is not None:
+            self.recorder.close()
+            self.recorder = None
+        if self._on_record_error == 'stop':
+            self.get_logger().error(f'recording failed, stopping (on_record_error=stop): {err}')
+            self.done = True
+            self.exit_code = 1
+        else:
+            self.get_logger().error(f'recording failed, simulation goes on without it: {err}')
+
+    def close(self) -> None:
+        """Finalize the MCAP log (idempotent; safe after the ROS context is shut down)."""
+        recorder, self.recorder = self.recorder, None
+        if recorder is not None:
+            try:
+                recorder.close()
+            except RecordingError as err:
+                self._record_status = f'failed: {err}'
+                print(f'sim_node: {err}', file=sys.stderr)
+
+    # -- commands, parameters, services ---------------------------------------------------
+
+    def _on_vibration_cmd(self, msg: Float64MultiArray) -> None:
+        try:
+            command = parse_command(msg.data, self._limits)
+        except (ValueError, TypeError) as err:
+            self.commands_rejected += 1
+            self.get_logger().warning(
+                f'vibration_cmd rejected ({err}); keeping the previous command',
+                throttle_duration_sec=1.0)
+            return
+        self.commands_accepted += 1
+        self._pending_command = command
+
+    def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        limits = self._limits
+        for p in params:
+            if p.name == 'real_time_factor':
+                self._rtf = float(p.value)
+                self._anchor()
+            elif p.name == 'max_amplitude_m':
+                limits = CommandLimits(float(p.value), limits.max_frequency_hz)
+            elif p.name == 'max_frequency_hz':
+                limits = CommandLimits(limits.max_amplitude_m, float(p.value))
+        self._limits = limits
+        return SetParametersResult(successful=True)
+
+    def _on_reset(self, request: Trigger.Request, response: Trigger.Response):
+        self.sim.reset()
+        self._pending_command = None
+        self._anchor()
+        self._publish_frame(self.sim.take_contacts())
+        response.success = True
+        response.message = f"scene '{self.sim.scene.name}' reset to t = 0"
+        return response
+
+    def _on_pause(self, request: SetBool.Request, response: SetBool.Response):
+        self.paused = bool(request.data)
+        self._anchor()
+        response.success = True
+        response.message = f"{'paused' if self.paused else 'running'} at t = {self.sim.t:.6g} s"
+        return response
+
+    def _on_step(self, request: Trigger.Request, response: Trigger.Response):
+        if not self.paused:
+            response.success = False
+            response.message = 'not paused: call ~/pause with data: true first'
+            return response
+        for _ in range(self.get_parameter('steps_per_call').value):
+            if self.done:
+                break
+            self.advance_frame()
+        response.success = True
+        response.message = f't = {self.sim.t:.6g} s'
+        return response
+
+
+def main(args: list[str] | None = None) -> int:
+    """Entry point of ``sim_node``: spin until duration, Ctrl-C or SIGTERM; finalize the log."""
+    rclpy.init(args=args)
+    try:
+        node = SimNode()
+    except (ParameterException, SceneError, ValueError, OSError, NotImplementedError) as err:
+        print(f'sim_node: error: {err}', file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    try:
+        while rclpy.ok() and not node.done:
+            executor.spin_once(timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except RCLError:
+        # A signal shut the context down in the middle of a frame's publishing.
+        if rclpy.ok():
+            raise
+    finally:
+        # A second signal while the log is being finalized must not cut it short.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        node.close()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return node.exit_code
+
+
+if __name__ == '__main__':
+    sys.exit(main())

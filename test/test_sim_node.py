@@ -1,0 +1,349 @@
+"""The ROS 2 node in-process: real rclpy over real DDS, the node and a probe in one executor.
+
+Every test starts its own context; what the probe receives is compared with the simulator's
+own numbers or with an analytic value.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+import math
+from pathlib import Path
+import time
+
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import PoseArray
+import numpy as np
+import pytest
+from rcl_interfaces.srv import SetParameters
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState, PointCloud2
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import SetBool, Trigger
+from visualization_msgs.msg import MarkerArray
+import yaml
+
+from feeder_sim.pointmass import Conveyor, mean_speed
+from feeder_sim.recording import read_messages
+from feeder_sim.ros_messages import PART_IMPULSE_FIELDS
+from feeder_sim.scene import load_scene, scene_to_dict
+from feeder_sim.sim_node import SimNode
+from feeder_sim.simulator import Simulator
+
+pytestmark = pytest.mark.timeout(180)
+
+
+def _ns(stamp: Time) -> int:
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+class Graph:
+    """A private ROS context with the node under test and a probe node in one executor."""
+
+    def __init__(self) -> None:
+        self.context = Context()
+        rclpy.init(context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.probe = Node('probe', context=self.context)
+        self.executor.add_node(self.probe)
+        self.node: SimNode | None = None
+        self.received: dict[str, list] = {}
+
+    def start(self, **params) -> SimNode:
+        overrides = [Parameter(k, value=v) for k, v in params.items()]
+        self.node = SimNode(context=self.context, parameter_overrides=overrides,
+                            use_global_arguments=False)
+        self.executor.add_node(self.node)
+        return self.node
+
+    def listen(self, msg_type, topic: str, qos=10) -> list:
+        box = self.received.setdefault(topic, [])
+        self.probe.create_subscription(msg_type, topic, box.append, qos)
+        return box
+
+    def spin_until(self, predicate, timeout_s: float = 20.0) -> None:
+        end = time.monotonic() + timeout_s
+        while not predicate():
+            if time.monotonic() > end:
+                raise TimeoutError(f'condition not met within {timeout_s:.0f} s')
+            self.executor.spin_once(timeout_sec=0.01)
+
+    def spin_for(self, wall_s: float) -> None:
+        end = time.monotonic() + wall_s
+        while time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=0.01)
+
+    def call(self, srv_type, name: str, request):
+        client = self.probe.create_client(srv_type, name)
+        assert client.wait_for_service(timeout_sec=10.0), name
+        future = client.call_async(request)
+        self.spin_until(future.done)
+        return future.result()
+
+    def publisher(self, msg_type, topic: str):
+        pub = self.probe.create_publisher(msg_type, topic, 10)
+        self.spin_until(lambda: pub.get_subscription_count() > 0)
+        return pub
+
+    def close(self) -> None:
+        if self.node is not None:
+            self.node.close()
+        self.executor.shutdown()
+        rclpy.shutdown(context=self.context)
+
+
+@pytest.fixture
+def graph():
+    g = Graph()
+    yield g
+    g.close()
+
+
+@pytest.fixture
+def resting_scene(tmp_path) -> Path:
+    """The default track with the drive switched off: the box rests until commanded."""
+    scene = load_scene('track_one_box')
+    bodies = [replace(b, vibration=replace(b.vibration, amplitude=0.0))
+              if b.vibration is not None else b for b in scene.bodies]
+    path = tmp_path / 'resting.yaml'
+    path.write_text(yaml.safe_dump(scene_to_dict(replace(scene, bodies=tuple(bodies)))))
+    return path
+
+
+def test_clock_and_poses_are_simulated_time_and_match_the_simulator(graph):
+    clock = graph.listen(Clock, '/clock',
+                         QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+    poses = graph.listen(PoseArray, '/feeder_sim/part_poses')
+    node = graph.start(real_time_factor=0.0, publish_rate=100.0)
+    graph.spin_until(lambda: len(poses) >= 30 and clock)
+    stamps = np.array([_ns(p.header.stamp) for p in poses])
+    assert np.all(np.diff(stamps) > 0)
+    assert np.all(stamps % 10_000_000 == 0), 'stamps are whole frames of 10 ms simulated time'
+    assert _ns(clock[-1].clock) > 0
+    assert all(p.header.frame_id == 'world' for p in poses)
+    # The same scene run bare, to the time of one received frame, gives the same pose.
+    msg = poses[25]
+    bare = Simulator('track_one_box')
+    for k in range(1, _ns(msg.header.stamp) // 10_000_000 + 1):
+        bare.advance(k * 0.01)
+    _, origin, angle = bare.part_poses()
+    p = msg.poses[0]
+    assert p.position.x == pytest.approx(origin[0, 0], abs=1e-12)
+    assert p.position.y == pytest.approx(origin[0, 1], abs=1e-12)
+    assert 2 * math.atan2(p.orientation.z, p.orientation.w) == pytest.approx(angle[0], abs=1e-12)
+    assert node.commands_rejected == 0
+
+
+def test_vibration_command_starts_and_stops_feeding(graph, resting_scene):
+    track = graph.listen(JointState, '/feeder_sim/track_state')
+    node = graph.start(scene=str(resting_scene), real_time_factor=0.0)
+    graph.spin_until(lambda: node.sim.t >= 0.2)
+    s0 = track[-1].position[0]
+    assert abs(s0 - track[0].position[0]) < 1e-9, 'without vibration the box stays put'
+
+    amplitude, frequency = 3.5e-4, 50.0
+    graph.publisher(Float64MultiArray, 'vibration_cmd').publish(
+        Float64MultiArray(data=[amplitude, frequency]))
+    graph.spin_until(lambda: node.commands_accepted == 1)
+    t_on = node.sim.t
+    graph.spin_until(lambda: _ns(track[-1].header.stamp) / 1e9 >= t_on + 1.5)
+    # Feeding speed over the last second, against the analytic point-mass conveyor
+    # (a flat box on a hopping track feeds like the point mass: 0.3 % in test_conveying).
+    t = np.array([_ns(m.header.stamp) / 1e9 for m in track])
+    s = np.array([m.position[0] for m in track])
+    window = t >= t_on + 0.5
+    speed = (s[window][-1] - s[window][0]) / (t[window][-1] - t[window][0])
+    psi = math.radians(20.0)
+    omega = 2 * math.pi * frequency
+    exact = mean_speed(Conveyor(psi=psi, theta=0.0, mu_s=0.5, mu_k=0.5,
+                                gamma=amplitude * omega ** 2 * math.sin(psi) / 9.81))
+    assert speed == pytest.approx(exact, rel=0.02)
+
+    graph.publisher(Float64MultiArray, 'vibration_cmd').publish(
+        Float64MultiArray(data=[0.0, frequency]))
+    graph.spin_until(lambda: node.commands_accepted == 2)
+    t_off = node.sim.t
+    graph.spin_until(lambda: _ns(track[-1].header.stamp) / 1e9 >= t_off + 0.5)
+    # The drive fades out within one period; a quarter second later the box is at rest.
+    late = [m for m in track if _ns(m.header.stamp) / 1e9 >= t_off + 0.25]
+    assert abs(late[-1].position[0] - late[0].position[0]) < 1e-6
+    assert abs(late[-1].velocity[0]) < 1e-6
+
+
+def test_pause_step_and_reset(graph):
+    poses = graph.listen(PoseArray, '/feeder_sim/part_poses')
+    node = graph.start(real_time_factor=0.0, steps_per_call=3, publish_rate=200.0)
+    graph.spin_until(lambda: node.sim.t > 0.05)
+    assert graph.call(SetBool, '/feeder_sim/pause', SetBool.Request(data=True)).success
+    t_paused = node.sim.t
+    graph.spin_for(0.3)
+    assert node.sim.t == t_paused
+    n_before = len(poses)
+    reply = graph.call(Trigger, '/feeder_sim/step', Trigger.Request())
+    assert reply.success, reply.message
+    assert node.sim.t == pytest.approx(t_paused + 3 / 200.0, abs=1e-12)
+    graph.spin_until(lambda: len(poses) >= n_before + 3)
+    assert _ns(poses[-1].header.stamp) == round((t_paused + 3 / 200.0) * 1e9)
+
+    reply = graph.call(Trigger, '/feeder_sim/reset', Trigger.Request())
+    assert reply.success
+    assert node.sim.t == 0.0
+    graph.spin_until(lambda: _ns(poses[-1].header.stamp) == 0)
+    initial = load_scene('track_one_box').bodies[1].pose
+    assert poses[-1].poses[0].position.x == pytest.approx(initial[0], abs=1e-12)
+
+    assert graph.call(SetBool, '/feeder_sim/pause', SetBool.Request(data=False)).success
+    reply = graph.call(Trigger, '/feeder_sim/step', Trigger.Request())
+    assert not reply.success and 'pause' in reply.message
+    graph.spin_until(lambda: node.sim.t > 0.02)
+
+
+def test_parameters_are_validated(graph):
+    node = graph.start(real_time_factor=0.0, start_paused=True)
+
+    def set_param(name, value):
+        msg = Parameter(name, value=value).to_parameter_msg()
+        request = SetParameters.Request(parameters=[msg])
+        return graph.call(SetParameters, '/feeder_sim/set_parameters', request).results[0]
+
+    assert set_param('real_time_factor', 5.0).successful
+    assert node.get_parameter('real_time_factor').value == 5.0
+    assert not set_param('real_time_factor', -1.0).successful
+    assert not set_param('real_time_factor', 5000.0).successful
+    assert not set_param('scene', 'incline_stick').successful          # read-only
+    assert not set_param('publish_rate', 10.0).successful              # read-only
+    assert not set_param('real_time_factor', 'fast').successful        # wrong type
+    assert node.get_parameter('real_time_factor').value == 5.0
+
+
+def test_construction_rejects_bad_parameters():
+    g = Graph()
+    try:
+        with pytest.raises(Exception, match='real_time_factor'):
+            g.start(real_time_factor=-2.0)
+        with pytest.raises(ValueError, match='method'):
+            g.start(method='verlet')
+        with pytest.raises(ValueError, match='scene'):
+            g.start(scene='no_such_scene')
+    finally:
+        g.close()
+
+
+def test_bad_commands_are_rejected_counted_and_the_last_good_one_stays(graph):
+    node = graph.start(real_time_factor=0.0, start_paused=True)
+    drive = node.sim.world.drives[node.sim.world.driven[0]]
+    pub = graph.publisher(Float64MultiArray, 'vibration_cmd')
+    pub.publish(Float64MultiArray(data=[2e-4, 60.0]))
+    graph.spin_until(lambda: node.commands_accepted == 1)
+    assert graph.call(Trigger, '/feeder_sim/step', Trigger.Request()).success
+    assert (drive.amplitude_m, drive.frequency_hz) == (2e-4, 60.0)
+    bad = [[math.nan, 50.0], [1e-3, math.inf], [-1e-3, 50.0], [0.2, 50.0], [1e-3, 2000.0],
+           [1e-3], [1e-3, 50.0, 1.0]]
+    for data in bad:
+        pub.publish(Float64MultiArray(data=data))
+    graph.spin_until(lambda: node.commands_rejected == len(bad))
+    assert graph.call(Trigger, '/feeder_sim/step', Trigger.Request()).success
+    assert (drive.amplitude_m, drive.frequency_hz) == (2e-4, 60.0)
+    assert node.commands_accepted == 1
+    assert node.status()['commands_rejected'] == len(bad)
+
+
+def test_part_impulses_carry_the_weight_of_a_resting_part(graph):
+    impulses = graph.listen(PointCloud2, '/feeder_sim/part_impulses')
+    node = graph.start(scene='incline_stick', real_time_factor=0.0, publish_rate=50.0)
+    graph.spin_until(lambda: len(impulses) >= 20)
+    names = [f.name for f in impulses[-1].fields]
+    assert names == [name for name, _, _ in PART_IMPULSE_FIELDS]
+    row = np.frombuffer(bytes(impulses[-1].data), dtype='<f4').reshape(-1, len(names))
+    weight = node.sim.world.mass[node.sim.part_indices[0]] * 9.81
+    # A block stuck on the incline: the track pushes it up by exactly its weight, N s per frame.
+    assert row[0, 3] == pytest.approx(0.0, abs=1e-9)
+    assert row[0, 4] == pytest.approx(weight / 50.0, rel=1e-5)
+    assert row[0, 7].view('<u4') >= 2
+
+
+def test_geometry_is_latched_and_markers_follow_parts(graph):
+    node = graph.start(real_time_factor=0.0, publish_rate=50.0)
+    graph.spin_until(lambda: node.frames >= 5)
+    # A subscriber that joins late still gets the static geometry.
+    geometry = graph.listen(MarkerArray, '/feeder_sim/geometry',
+                            QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                                       durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    markers = graph.listen(MarkerArray, '/feeder_sim/markers')
+    graph.spin_until(lambda: geometry and len(markers) >= 3)
+    assert [m.ns for m in geometry[0].markers] == ['track']
+    outline = [m for m in markers[-1].markers if m.ns == 'box'][0]
+    assert len(outline.points) == 5            # closed rectangle
+    stamp = _ns(markers[-1].markers[0].header.stamp)
+    assert stamp % 20_000_000 == 0
+
+
+def test_qos_can_be_overridden_by_parameter(graph):
+    node = graph.start(**{
+        'real_time_factor': 0.0,
+        'qos_overrides./feeder_sim/part_poses.publisher.reliability': 'best_effort',
+        'qos_overrides./feeder_sim/part_poses.publisher.depth': 1})
+    assert node.pub_poses.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+    assert node.pub_poses.qos_profile.depth == 1
+    assert node.pub_contacts.qos_profile.reliability == ReliabilityPolicy.RELIABLE
+
+
+def test_real_time_factor_paces_and_changes_at_run_time(graph):
+    node = graph.start(real_time_factor=1.0)
+    graph.spin_for(0.3)
+    t0, w0 = node.sim.t, time.monotonic()
+    graph.spin_for(1.0)
+    rate_1 = (node.sim.t - t0) / (time.monotonic() - w0)
+    node.set_parameters([Parameter('real_time_factor', value=0.25)])
+    t0, w0 = node.sim.t, time.monotonic()
+    graph.spin_for(1.0)
+    rate_q = (node.sim.t - t0) / (time.monotonic() - w0)
+    # Paced runs never get ahead of the wall clock; a loaded machine may fall behind.
+    assert 0.6 < rate_1 <= 1.05
+    assert 0.15 < rate_q <= 0.27
+
+
+def test_recording_failure_continues_or_stops(graph, tmp_path):
+    blocker = tmp_path / 'file'
+    blocker.write_text('not a directory')
+    node = graph.start(real_time_factor=0.0, record_path=str(blocker / 'x.mcap'))
+    graph.spin_until(lambda: node.sim.t > 0.1)
+    assert node.status()['recording'].startswith('failed') and not node.done
+
+    g = Graph()
+    try:
+        stopped = g.start(real_time_factor=0.0, record_path=str(blocker / 'y.mcap'),
+                          on_record_error='stop')
+        assert stopped.done and stopped.exit_code == 1
+    finally:
+        g.close()
+
+
+def test_same_commands_at_the_same_simulated_times_give_the_same_log(tmp_path):
+    logs = []
+    for run in range(2):
+        g = Graph()
+        try:
+            path = tmp_path / f'run{run}.mcap'
+            node = g.start(real_time_factor=0.0, start_paused=True, record_path=str(path),
+                           steps_per_call=7)
+            pub = g.publisher(Float64MultiArray, 'vibration_cmd')
+            for command in ([5e-4, 40.0], [2e-4, 70.0]):
+                for _ in range(3):
+                    assert g.call(Trigger, '/feeder_sim/step', Trigger.Request()).success
+                pub.publish(Float64MultiArray(data=command))
+                g.spin_until(lambda n=node, c=command: n._pending_command == tuple(c))
+            for _ in range(5):
+                g.call(Trigger, '/feeder_sim/step', Trigger.Request())
+            node.close()
+        finally:
+            g.close()
+        logs.append(list(read_messages(path)))
+    assert len(logs[0]) > 100
+    assert logs[0] == logs[1]
