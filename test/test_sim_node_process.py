@@ -1,0 +1,188 @@
+"""The installed node as ROS users run it: colcon workspace, `ros2 run` lookup, signals, logs.
+
+The package is built with colcon (from PyPI) into a temporary workspace; the executable is
+found the way `ros2 run feeder_sim sim_node` finds it (ament index -> <prefix>/lib/<package>);
+the environment is the one `install/setup.bash` gives. Logs are read back with mcap and
+mcap-ros2-support only, not with feeder_sim's own reader.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+import signal
+import subprocess
+import sys
+import time
+
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+from mcap.stream_reader import StreamReader
+from mcap_ros2.decoder import DecoderFactory
+from mcap_ros2.reader import read_ros2_messages
+import numpy as np
+import pytest
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+
+pytestmark = pytest.mark.timeout(300)
+
+REPO = Path(__file__).resolve().parents[1]
+VENV_BIN = Path(sys.executable).parent
+
+
+@pytest.fixture(scope='module')
+def workspace(tmp_path_factory) -> dict:
+    """colcon-built install of this package; returns the sourced environment and prefix."""
+    ws = tmp_path_factory.mktemp('ws')
+    env = dict(os.environ, PATH=f'{VENV_BIN}{os.pathsep}{os.environ["PATH"]}')
+    build = subprocess.run(
+        [str(VENV_BIN / 'colcon'), '--log-base', str(ws / 'log'), 'build',
+         '--base-paths', str(REPO), '--build-base', str(ws / 'build'),
+         '--install-base', str(ws / 'install')],
+        cwd=ws, env=env, capture_output=True, text=True, timeout=240)
+    assert build.returncode == 0, build.stdout + build.stderr
+    sourced = subprocess.run(
+        ['bash', '-c', f'. {ws}/install/setup.bash && env -0'], env=env,
+        capture_output=True, check=True, timeout=60).stdout.decode()
+    env = dict(line.split('=', 1) for line in sourced.split('\0') if '=' in line)
+    return {'env': env, 'install': ws / 'install'}
+
+
+def ros2_run_path(env: dict, package: str, executable: str) -> Path:
+    """What `ros2 run` resolves: the package prefix from the ament index, then lib/<package>."""
+    prefix = subprocess.run(
+        [sys.executable, '-c', 'import sys; from ament_index_python.packages import '
+         'get_package_prefix as p; print(p(sys.argv[1]))', package],
+        env=env, capture_output=True, text=True, check=True).stdout.strip()
+    matches = []
+    for root, dirs, files in os.walk(Path(prefix) / 'lib' / package):
+        dirs[:] = [d for d in dirs if not d.startswith('.')]
+        matches += [Path(root) / f for f in files
+                    if f == executable and os.access(Path(root) / f, os.X_OK)]
+    assert len(matches) == 1, matches
+    return matches[0]
+
+
+def start_node(workspace, *ros_args: str) -> subprocess.Popen:
+    exe = ros2_run_path(workspace['env'], 'feeder_sim', 'sim_node')
+    return subprocess.Popen([str(exe), '--ros-args', *ros_args], env=workspace['env'],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+
+
+def wait_for_messages(path: Path, proc: subprocess.Popen, min_bytes: int = 20_000) -> None:
+    end = time.monotonic() + 60
+    while not (path.exists() and path.stat().st_size > min_bytes):
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < end, 'the node wrote no chunk within 60 s'
+        time.sleep(0.1)
+
+
+def test_colcon_installs_where_ros2_run_and_the_ament_index_look(workspace):
+    install = workspace['install']
+    exe = ros2_run_path(workspace['env'], 'feeder_sim', 'sim_node')
+    assert exe == install / 'feeder_sim' / 'lib' / 'feeder_sim' / 'sim_node'
+    share = install / 'feeder_sim' / 'share'
+    assert (share / 'ament_index' / 'resource_index' / 'packages' / 'feeder_sim').is_file()
+    assert (share / 'feeder_sim' / 'package.xml').is_file()
+    assert (share / 'feeder_sim' / 'config' / 'track_one_box.yaml').is_file()
+    assert (share / 'feeder_sim' / 'config' / 'sim_node.params.yaml').is_file()
+
+
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
+def test_signal_exits_0_with_a_finalized_log(workspace, tmp_path, sig):
+    log = tmp_path / 'run.mcap'
+    proc = start_node(workspace, '-p', f'record_path:={log}', '-p', 'real_time_factor:=0.0',
+                      '-p', 'record_flush_period:=0.1')
+    wait_for_messages(log, proc)
+    proc.send_signal(sig)
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    assert 'Traceback' not in err
+    with open(log, 'rb') as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None and summary.statistics.message_count > 0
+    by_topic: dict[str, list] = {}
+    for m in read_ros2_messages(log):
+        by_topic.setdefault(m.channel.topic, []).append(m)
+    frames = len(by_topic['/clock'])
+    assert frames > 5
+    for topic in ('/feeder_sim/part_poses', '/feeder_sim/contacts', '/feeder_sim/track_state'):
+        assert len(by_topic[topic]) == frames, topic
+    stamps = [m.log_time_ns for m in by_topic['/feeder_sim/part_poses']]
+    assert np.all(np.diff(stamps) == 10_000_000)
+    assert summary.statistics.message_count == sum(map(len, by_topic.values()))
+
+
+def test_kill_9_leaves_every_flushed_chunk_readable(workspace, tmp_path):
+    log = tmp_path / 'killed.mcap'
+    proc = start_node(workspace, '-p', f'record_path:={log}', '-p', 'real_time_factor:=0.0',
+                      '-p', 'record_flush_period:=0.1')
+    wait_for_messages(log, proc, min_bytes=100_000)
+    size_before = log.stat().st_size
+    proc.kill()
+    proc.communicate(timeout=30)
+    assert proc.returncode == -signal.SIGKILL
+    with open(log, 'rb') as f:
+        with pytest.raises(McapError):
+            make_reader(f).get_summary()            # no footer: the writer never finished
+    # An independent streaming reader recovers the messages up to the damage.
+    decode = DecoderFactory()
+    schemas, channels, stamps = {}, {}, []
+    with open(log, 'rb') as f:
+        try:
+            for record in StreamReader(f, skip_magic=False).records:
+                kind = type(record).__name__
+                if kind == 'Schema':
+                    schemas[record.id] = record
+                elif kind == 'Channel':
+                    channels[record.id] = record
+                elif kind == 'Message':
+                    channel = channels[record.channel_id]
+                    if channel.topic == '/feeder_sim/part_poses':
+                        schema = schemas[channel.schema_id]
+                        msg = decode.decoder_for('cdr', schema)(record.data)
+                        stamps.append(msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)
+        except (McapError, EOFError, ValueError):
+            pass
+    assert len(stamps) > 50
+    assert stamps[0] == 0 and np.all(np.diff(stamps) == 10_000_000), 'no frame lost inside'
+    assert log.stat().st_size >= size_before
+
+
+def test_params_file_namespace_and_duration(workspace, tmp_path):
+    params = workspace['install'] / 'feeder_sim' / 'share' / 'feeder_sim' / 'config' / \
+        'sim_node.params.yaml'
+    context = Context()
+    rclpy.init(context=context)
+    try:
+        probe = Node('probe', context=context)
+        states = []
+        probe.create_subscription(JointState, '/cell1/feeder_sim/track_state', states.append, 10)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(probe)
+        proc = start_node(workspace, '--params-file', str(params), '-r', '__ns:=/cell1',
+                          '-p', 'duration:=3.0', '-p', 'real_time_factor:=2.0')
+        end = time.monotonic() + 90
+        while proc.poll() is None and time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.05)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        rclpy.shutdown(context=context)
+    assert proc.returncode == 0, err
+    assert 'duration reached' in err + out
+    assert states and states[-1].name == ['box']
+    # A 3 s run paced at twice real time publishes its frames over about 1.5 s of wall time.
+    assert states[-1].header.stamp.sec * 10**9 + states[-1].header.stamp.nanosec > 1e9
+
+
+def test_bad_scene_is_one_clear_line_and_exit_status_2(workspace):
+    proc = start_node(workspace, '-p', 'scene:=no_such_scene')
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2
+    assert 'sim_node: error:' in err and 'no_such_scene' in err
+    assert 'Traceback' not in err
