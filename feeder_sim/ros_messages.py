@@ -66,13 +66,20 @@ def pose_array(t_ns: int, origin: np.ndarray, angle: np.ndarray, frame_id: str) 
     return msg
 
 
-def _cloud(t_ns: int, frame_id: str, fields, step: int, rows: np.ndarray) -> PointCloud2:
-    msg = PointCloud2(header=header(t_ns, frame_id), height=1, width=len(rows),
-                      is_bigendian=False, point_step=step, row_step=step * len(rows),
-                      is_dense=True)
-    msg.fields = [PointField(name=n, offset=o, datatype=d, count=1) for n, o, d in fields]
-    msg.data = rows.tobytes()
-    return msg
+def _point_fields(fields) -> list[PointField]:
+    return [PointField(name=n, offset=o, datatype=d, count=1) for n, o, d in fields]
+
+
+_CONTACT_POINT_FIELDS = _point_fields(CONTACT_FIELDS)
+_PART_IMPULSE_POINT_FIELDS = _point_fields(PART_IMPULSE_FIELDS)
+
+
+def _cloud(t_ns: int, frame_id: str, fields: list[PointField], step: int,
+           rows: np.ndarray) -> PointCloud2:
+    # The field list is shared between messages: publishing only reads it.
+    return PointCloud2(header=header(t_ns, frame_id), height=1, width=len(rows), fields=fields,
+                       is_bigendian=False, point_step=step, row_step=step * len(rows),
+                       data=rows.tobytes(), is_dense=True)
 
 
 def contact_cloud(t_ns: int, report, frame_id: str) -> PointCloud2:
@@ -85,7 +92,7 @@ def contact_cloud(t_ns: int, report, frame_id: str) -> PointCloud2:
     ids = rows.view('<u4')
     ids[:, 7] = report.body_a
     ids[:, 8] = report.body_b
-    return _cloud(t_ns, frame_id, CONTACT_FIELDS, CONTACT_POINT_STEP, rows)
+    return _cloud(t_ns, frame_id, _CONTACT_POINT_FIELDS, CONTACT_POINT_STEP, rows)
 
 
 def part_impulse_cloud(t_ns: int, totals: PartImpulses, centre_of_mass: np.ndarray,
@@ -100,7 +107,7 @@ def part_impulse_cloud(t_ns: int, totals: PartImpulses, centre_of_mass: np.ndarr
     ids = rows.view('<u4')
     ids[:, 7] = totals.contacts
     ids[:, 8] = np.arange(n)
-    return _cloud(t_ns, frame_id, PART_IMPULSE_FIELDS, PART_IMPULSE_STEP, rows)
+    return _cloud(t_ns, frame_id, _PART_IMPULSE_POINT_FIELDS, PART_IMPULSE_STEP, rows)
 
 
 def track_state(t_ns: int, names: Sequence[str], position: np.ndarray,

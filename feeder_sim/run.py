@@ -38,21 +38,34 @@ class Trajectory:
                 np.asarray(self.speed).reshape(-1, n))
 
 
-def record_frame(sim: Simulator, recorder, t_ns: int, contacts: ContactReport | None = None
-                 ) -> None:
-    """Write one frame of the interfaces' MCAP topics at simulated time ``t_ns``.
+@dataclass
+class Frame:
+    """What is published and recorded at one simulated time: one pass over the state."""
 
-    ``contacts`` is the frame's contact report; without it the simulator's is taken.
-    """
-    names, origin, angle = sim.part_poses()
-    s, v = sim.track_coordinates()
-    if contacts is None:
-        contacts = sim.take_contacts()
+    t_ns: int                    # simulated time, ns
+    names: tuple[str, ...]       # parts, scene order
+    origin: np.ndarray           # (n, 2) body-frame origins, m
+    angle: np.ndarray            # (n,) rad
+    s: np.ndarray                # (n,) position along the track, m
+    speed: np.ndarray            # (n,) speed along the track, m/s
+    contacts: ContactReport      # contacts and impulses since the previous frame
+
+    @classmethod
+    def take(cls, sim: Simulator) -> Frame:
+        """The current frame of ``sim``; takes (and so resets) its contact report."""
+        names, origin, angle = sim.part_poses()
+        s, v = sim.track_coordinates()
+        return cls(round(sim.t * 1e9), names, origin, angle, s, v, sim.take_contacts())
+
+
+def record_frame(recorder, frame: Frame) -> None:
+    """Write one frame of the interfaces' MCAP topics."""
+    t_ns, c = frame.t_ns, frame.contacts
     recorder.write_clock(t_ns)
-    recorder.write_part_poses(t_ns, origin, angle)
-    recorder.write_contacts(t_ns, contacts.point, contacts.normal, contacts.normal_impulse,
-                            contacts.tangent_impulse, contacts.body_a, contacts.body_b)
-    recorder.write_track_state(t_ns, names, s, v)
+    recorder.write_part_poses(t_ns, frame.origin, frame.angle)
+    recorder.write_contacts(t_ns, c.point, c.normal, c.normal_impulse, c.tangent_impulse,
+                            c.body_a, c.body_b)
+    recorder.write_track_state(t_ns, frame.names, frame.s, frame.speed)
 
 
 def recording_metadata(sim: Simulator) -> dict[str, str]:
@@ -105,12 +118,10 @@ def run(sim: Simulator, duration_s: float, *, publish_rate_hz: float = 100.0,
     try:
         for k in range(1, n_frames + 1):
             sim.advance(t0 + min(k * period, duration_s))
-            s, v = sim.track_coordinates()
-            traj.t.append(sim.t), traj.s.append(s), traj.speed.append(v)
+            frame = Frame.take(sim)
+            traj.t.append(sim.t), traj.s.append(frame.s), traj.speed.append(frame.speed)
             if recorder is not None:
-                record_frame(sim, recorder, int(round(sim.t * 1e9)))
-            else:
-                sim.take_contacts()
+                record_frame(recorder, frame)
             if on_frame is not None:
                 on_frame(sim)
             now = time.perf_counter()

@@ -56,7 +56,7 @@ from visualization_msgs.msg import MarkerArray
 from feeder_sim import ros_messages as msgs
 from feeder_sim.impulses import part_impulses
 from feeder_sim.recording import RecordingError
-from feeder_sim.run import open_recorder, record_frame
+from feeder_sim.run import Frame, open_recorder, record_frame
 from feeder_sim.scene import SceneError
 from feeder_sim.simulator import METHODS, Simulator
 from feeder_sim.vibration import CommandLimits, parse_command
@@ -102,8 +102,8 @@ PARAMETERS = (
            "simulating without it, or 'stop' the node (exit status 1)"),
     _Param('record_flush_period', 1.0, 'wall seconds after which the open MCAP chunk is written '
            'out, bounding what a hard kill loses', low=0.01, high=3600.0),
-    _Param('publish_markers', True, 'publish ~/markers (outlines and impulse arrows) each frame',
-           read_only=False),
+    _Param('marker_rate', 20.0, 'wall-clock Hz at which ~/markers (outlines, impulse arrows) '
+           'follow the frames; 0 = no markers', read_only=False, low=0.0, high=1000.0),
     _Param('impulse_marker_scale', 0.0, 'arrow length per impulse (m per N s); 0 = a part size '
            "for a contact carrying one part's weight for one frame", read_only=False,
            low=0.0, high=1e9),
@@ -164,8 +164,10 @@ class SimNode(Node):
         world = self.sim.world
         self._parts = self.sim.part_indices
         self._others = np.flatnonzero(world.body_type != DYNAMIC)
+        self._line_width, self._auto_impulse_scale = self._marker_sizes()
+        self._last_markers = -np.inf
         self._outlines = msgs.Outlines([b.outlines for b in world.scene.bodies], world.names,
-                                       self.frame_id, self._line_width())
+                                       self.frame_id, self._line_width)
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         overridable = QoSOverridingOptions.with_default_policies()
@@ -207,7 +209,7 @@ class SimNode(Node):
         self.create_timer(0.001, self._on_timer, clock=steady)
         self.create_timer(value['diagnostics_period'], self._publish_diagnostics, clock=steady)
         self._publish_geometry()
-        self._publish_frame(self.sim.take_contacts())
+        self._publish_frame(Frame.take(self.sim))
         self.get_logger().info(
             f"scene '{self.sim.scene.name}' ({self.sim.method}, {len(self._parts)} parts), "
             f'{1e9 / self.period_ns:g} frames per simulated s, real-time factor {self._rtf:g}'
@@ -253,7 +255,7 @@ class SimNode(Node):
             self._record(lambda r: r.write_vibration_cmd(self.t_ns, amplitude_m, frequency_hz))
         self.sim.advance((self.t_ns + self.period_ns) / _NS)
         self.frames += 1
-        self._publish_frame(self.sim.take_contacts())
+        self._publish_frame(Frame.take(self.sim))
         if self.duration_ns and self.t_ns >= self.duration_ns:
             self.get_logger().info(f'duration reached: t = {self.sim.t:.6g} s simulated')
             self.close()
@@ -261,24 +263,38 @@ class SimNode(Node):
 
     # -- publishing ------------------------------------------------------------------------
 
-    def _publish_frame(self, contacts) -> None:
-        t_ns = self.t_ns
-        sim = self.sim
-        names, origin, angle = sim.part_poses()
-        s, v = sim.track_coordinates()
-        totals = part_impulses(contacts, self._parts, sim.state.position)
-        self.pub_clock.publish(msgs.clock(t_ns))
-        self.pub_poses.publish(msgs.pose_array(t_ns, origin, angle, self.frame_id))
-        self.pub_contacts.publish(msgs.contact_cloud(t_ns, contacts, self.frame_id))
-        self.pub_impulses.publish(msgs.part_impulse_cloud(t_ns, totals, sim.state.position,
-                                                          self.frame_id))
-        self.pub_track.publish(msgs.track_state(t_ns, names, s, v))
-        if self.get_parameter('publish_markers').value:
-            markers = self._outlines.markers(t_ns, self._parts, origin, angle)
-            markers += msgs.impulse_arrows(t_ns, contacts, self._impulse_scale(),
-                                           self.frame_id, 0.1 * self._line_width())
-            self.pub_markers.publish(msgs.marker_array(markers))
-        self._record(lambda r: record_frame(sim, r, t_ns, contacts))
+    def _publish_frame(self, frame: Frame) -> None:
+        t_ns, contacts = frame.t_ns, frame.contacts
+        com = self.sim.state.position
+        # A message nobody subscribes to is not built: serializing it is most of the cost.
+        if self.pub_clock.get_subscription_count():
+            self.pub_clock.publish(msgs.clock(t_ns))
+        if self.pub_poses.get_subscription_count():
+            self.pub_poses.publish(msgs.pose_array(t_ns, frame.origin, frame.angle,
+                                                   self.frame_id))
+        if self.pub_contacts.get_subscription_count():
+            self.pub_contacts.publish(msgs.contact_cloud(t_ns, contacts, self.frame_id))
+        if self.pub_impulses.get_subscription_count():
+            totals = part_impulses(contacts, self._parts, com)
+            self.pub_impulses.publish(msgs.part_impulse_cloud(t_ns, totals, com, self.frame_id))
+        if self.pub_track.get_subscription_count():
+            self.pub_track.publish(msgs.track_state(t_ns, frame.names, frame.s, frame.speed))
+        if self.pub_markers.get_subscription_count():
+            self._publish_markers(frame)
+        self._record(lambda r: record_frame(r, frame))
+
+    def _publish_markers(self, frame: Frame) -> None:
+        # RViz redraws a few tens of times per second: markers for every frame would cost
+        # more than the physics of a small scene, so they follow the frames at marker_rate.
+        rate = self.get_parameter('marker_rate').value
+        now = time.perf_counter()
+        if rate <= 0.0 or now - self._last_markers < 1.0 / rate:
+            return
+        self._last_markers = now
+        markers = self._outlines.markers(frame.t_ns, self._parts, frame.origin, frame.angle)
+        markers += msgs.impulse_arrows(frame.t_ns, frame.contacts, self._impulse_scale(),
+                                       self.frame_id, 0.1 * self._line_width)
+        self.pub_markers.publish(msgs.marker_array(markers))
 
     def _publish_geometry(self) -> None:
         origin, angle = self.sim.world.body_frame_pose(self.sim.state)
@@ -286,19 +302,20 @@ class SimNode(Node):
                                          angle[self._others], grey=True)
         self.pub_geometry.publish(msgs.marker_array(markers))
 
-    def _line_width(self) -> float:
-        return 0.05 * float(np.median(self.sim.world.radius[self._parts])) if len(self._parts) \
-            else 1e-3
-
     def _impulse_scale(self) -> float:
         scale = self.get_parameter('impulse_marker_scale').value
-        if scale > 0.0 or not len(self._parts):
-            return scale
+        return scale if scale > 0.0 else self._auto_impulse_scale
+
+    def _marker_sizes(self) -> tuple[float, float]:
+        """Outline line width (m) and the automatic arrow scale (m per N s)."""
         world = self.sim.world
+        if not len(self._parts):
+            return 1e-3, 0.0
+        size = 2.0 * float(np.median(world.radius[self._parts]))
         weight_impulse = (float(np.median(world.mass[self._parts]))
                           * max(float(np.linalg.norm(world.gravity)), 1e-3)
                           * self.period_ns / _NS)
-        return 2.0 * float(np.median(world.radius[self._parts])) / weight_impulse
+        return 0.025 * size, size / weight_impulse
 
     def _publish_diagnostics(self) -> None:
         now = time.perf_counter()
@@ -412,7 +429,7 @@ class SimNode(Node):
         self.sim.reset()
         self._pending_command = None
         self._anchor()
-        self._publish_frame(self.sim.take_contacts())
+        self._publish_frame(Frame.take(self.sim))
         response.success = True
         response.message = f"scene '{self.sim.scene.name}' reset to t = 0"
         return response
