@@ -50,6 +50,19 @@ def _scenes(_: argparse.Namespace) -> int:
     return 0
 
 
+def _replay(args: argparse.Namespace) -> int:
+    try:
+        from feeder_sim.replay import replay
+    except ImportError as err:  # rerun-sdk is the optional 'replay' extra
+        raise NotImplementedError(
+            f"replay needs rerun-sdk (pip install 'feeder_sim[replay]'): {err}") from err
+
+    rrd = replay(args.log, args.rrd, spawn=args.spawn)
+    print(rrd)
+    print(f'  open it with: rerun {rrd}')
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog='feeder-sim', description=__doc__)
     parser.add_argument('--version', action='version', version=f'feeder_sim {__version__}')
@@ -71,6 +84,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--tolerance', type=float, help="override the scene's solver.tolerance")
     p.add_argument('--json', action='store_true', help='also print the summary as JSON')
     p.set_defaults(func=_run)
+
+    p = sub.add_parser('replay', help='convert an MCAP log to a rerun recording (.rrd)')
+    p.add_argument('log', metavar='LOG.mcap', help='log written by feeder-sim run or the node')
+    p.add_argument('--rrd', metavar='OUT.rrd', help='output (default: next to the log)')
+    viewer = p.add_mutually_exclusive_group()
+    viewer.add_argument('--viewer', dest='spawn', action='store_const', const=True,
+                        help='open the rerun viewer on the recording')
+    viewer.add_argument('--no-viewer', dest='spawn', action='store_const', const=False,
+                        help='only write the file (default: open the viewer if there is a '
+                             'display)')
+    p.set_defaults(func=_replay, spawn=None)
 
     p = sub.add_parser('scenes', help='list the shipped scenes')
     p.set_defaults(func=_scenes)
