@@ -64,7 +64,7 @@ from feeder_sim.world import DYNAMIC
 
 NODE_NAME = 'feeder_sim'
 _NS = 1_000_000_000
-_WALL_BUDGET_S = 0.05      # longest stretch of physics before commands and services are served
+_WALL_BUDGET_S = 0.01      # longest stretch of physics before commands and services are served
 _MAX_LAG_S = 0.25          # wall time behind schedule after which pacing forgets the debt
 
 
