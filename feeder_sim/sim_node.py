@@ -164,6 +164,7 @@ class SimNode(Node):
         world = self.sim.world
         self._parts = self.sim.part_indices
         self._others = np.flatnonzero(world.body_type != DYNAMIC)
+        self._s_start = self.sim.track_coordinates()[0]
         self._line_width, self._auto_impulse_scale = self._marker_sizes()
         self._last_markers = -np.inf
         self._outlines = msgs.Outlines([b.outlines for b in world.scene.bodies], world.names,
@@ -257,7 +258,12 @@ class SimNode(Node):
         self.frames += 1
         self._publish_frame(Frame.take(self.sim))
         if self.duration_ns and self.t_ns >= self.duration_ns:
-            self.get_logger().info(f'duration reached: t = {self.sim.t:.6g} s simulated')
+            s, _ = self.sim.track_coordinates()
+            feed = ', '.join(f'{name} {1e3 * (b - a) / self.sim.t:.2f} mm/s' for name, a, b
+                             in zip(self.sim.part_poses()[0][:5], self._s_start, s))
+            self.get_logger().info(f'duration reached: t = {self.sim.t:.6g} s simulated; mean '
+                                   f'speed along the track: {feed}'
+                                   + (' ...' if len(s) > 5 else ''))
             self.close()
             self.done = True
 

@@ -440,3 +440,22 @@ def test_viewer_is_opened_only_when_asked_or_displayable(chunked_log, tmp_path, 
     rrd = replay(chunked_log, tmp_path / 'v.rrd', spawn=spawn)
     assert rrd.stat().st_size > 0
     assert calls == ([rrd] if opened else [])
+
+
+def test_rerun_reads_the_raw_log_with_its_own_ros2_decoders(ten_log, tmp_path):
+    # `rerun LOG.mcap` without feeder_sim: contacts become points, track state and commands
+    # become plotted scalars.
+    rrd = tmp_path / 'raw.rrd'
+    rerun = Path(sys.executable).with_name('rerun')
+    subprocess.run([str(rerun), 'mcap', 'convert', str(ten_log), '-o', str(rrd),
+                    '--timeline-type', 'duration'], check=True, capture_output=True, timeout=120)
+    components: dict[str, set] = {}
+    for chunk in chunks(rrd):
+        components.setdefault(chunk.entity_path, set()).update(
+            chunk.to_record_batch().schema.names)
+    flat = {(e, c) for e, cs in components.items() for c in cs}
+    assert any(e.startswith('/feeder_sim/contacts') and 'Points3D:positions' in c
+               for e, c in flat)
+    assert any(e.startswith('/feeder_sim/track_state') and 'Scalars:scalars' in c
+               for e, c in flat)
+    assert any(e.startswith('/vibration_cmd') and 'Scalars:scalars' in c for e, c in flat)

@@ -16,6 +16,7 @@ import time
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray
+from mcap_ros2.reader import read_ros2_messages
 import numpy as np
 import pytest
 from rcl_interfaces.srv import SetParameters
@@ -326,6 +327,40 @@ def test_recording_failure_continues_or_stops(graph, tmp_path):
         assert stopped.done and stopped.exit_code == 1
     finally:
         g.close()
+
+
+@pytest.mark.skipif(not Path('/dev/full').exists(), reason='needs /dev/full')
+def test_a_full_disk_is_reported_and_the_simulation_goes_on(graph):
+    # Every write to /dev/full fails with ENOSPC, as on a full disk.
+    node = graph.start(real_time_factor=0.0, record_path='/dev/full')
+    graph.spin_until(lambda: node.sim.t > 0.2)
+    assert 'No space left' in node.status()['recording'] and not node.done
+
+
+def test_the_log_read_by_mcap_ros2_holds_what_the_simulator_computed(graph, tmp_path):
+    log = tmp_path / 'node.mcap'
+    node = graph.start(real_time_factor=0.0, record_path=str(log), start_paused=True,
+                       steps_per_call=40)
+    assert graph.call(Trigger, '/feeder_sim/step', Trigger.Request()).success
+    node.close()
+    messages = list(read_ros2_messages(log))
+    types = {m.channel.topic: m.schema.name for m in messages}
+    assert types == {'/clock': 'rosgraph_msgs/msg/Clock',
+                     '/feeder_sim/part_poses': 'geometry_msgs/msg/PoseArray',
+                     '/feeder_sim/contacts': 'sensor_msgs/msg/PointCloud2',
+                     '/feeder_sim/track_state': 'sensor_msgs/msg/JointState',
+                     '/vibration_cmd': 'std_msgs/msg/Float64MultiArray'}
+    poses = [m for m in messages if m.channel.topic == '/feeder_sim/part_poses']
+    assert len(poses) == 41                     # the initial frame and 40 steps
+    assert [m.log_time_ns for m in poses] == [k * 10_000_000 for k in range(41)]
+    assert all(_ns(m.ros_msg.header.stamp) == m.log_time_ns for m in poses)
+    bare = Simulator('track_one_box')
+    for k in range(1, 41):
+        bare.advance(k * 0.01)
+    _, origin, angle = bare.part_poses()
+    p = poses[-1].ros_msg.poses[0]
+    assert (p.position.x, p.position.y) == (origin[0, 0], origin[0, 1])
+    assert 2 * math.atan2(p.orientation.z, p.orientation.w) == pytest.approx(angle[0], abs=1e-15)
 
 
 def test_same_commands_at_the_same_simulated_times_give_the_same_log(tmp_path):
