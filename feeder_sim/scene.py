@@ -37,6 +37,7 @@ __all__ = [
 
 METHODS = ('event_driven', 'time_stepping', 'impulse_based')
 BODY_TYPES = ('static', 'kinematic', 'dynamic')
+RESTITUTION_LAWS = ('stronge', 'poisson', 'newton')
 DEFAULT_GRAVITY = (0.0, -9.81)
 MAX_FRICTION = 10.0
 
@@ -123,6 +124,7 @@ class SolverSpec:
     time_step: float = 1e-4
     friction_impulse: bool = True
     tolerance: float = 1e-9
+    restitution_law: str = 'stronge'   # impulse_based: stronge | poisson | newton
 
 
 @dataclass(frozen=True, eq=False)
@@ -456,6 +458,9 @@ _SOLVER = {
     'friction_impulse': _Field(_boolean, 'true or false', SolverSpec.friction_impulse),
     'tolerance': _Field(_num(0.0, 1e-2, lo_open=True), 'a relative tolerance',
                         SolverSpec.tolerance),
+    'restitution_law': _Field(lambda v, p: _choice(v, p, RESTITUTION_LAWS),
+                              'one of ' + ', '.join(RESTITUTION_LAWS),
+                              SolverSpec.restitution_law),
 }
 
 
@@ -770,6 +775,7 @@ def scene_to_dict(scene: Scene) -> dict:
         'track': scene.track,
         'solver': {'method': s.method, 'time_step': float(s.time_step),
                    'friction_impulse': bool(s.friction_impulse),
-                   'tolerance': float(s.tolerance)},
+                   'tolerance': float(s.tolerance),
+                   'restitution_law': s.restitution_law},
         'bodies': bodies,
     }
