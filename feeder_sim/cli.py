@@ -63,6 +63,17 @@ def _replay(args: argparse.Namespace) -> int:
     return 0
 
 
+def _paper(args: argparse.Namespace) -> int:
+    from feeder_sim.paper import FIGURES, paper
+
+    figures = args.only.split(',') if args.only else FIGURES
+    results = paper(args.out, figures)
+    for name in results:
+        print(f'  {name}: written to {args.out}')
+    print(f'  numbers: {Path(args.out) / "paper.json"}')
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog='feeder-sim', description=__doc__)
     parser.add_argument('--version', action='version', version=f'feeder_sim {__version__}')
@@ -95,6 +106,11 @@ def build_parser() -> argparse.ArgumentParser:
                         help='only write the file (default: open the viewer if there is a '
                              'display)')
     p.set_defaults(func=_replay, spawn=None)
+
+    p = sub.add_parser('paper', help="regenerate the paper's figures (PNG + JSON)")
+    p.add_argument('--out', default='out/paper', help='output folder (default out/paper)')
+    p.add_argument('--only', metavar='FIGS', help='comma-separated subset of fig7,flip,fig8')
+    p.set_defaults(func=_paper)
 
     p = sub.add_parser('scenes', help='list the shipped scenes')
     p.set_defaults(func=_scenes)

@@ -1,0 +1,215 @@
+"""``feeder-sim paper``: the paper's figures regenerated from the shipped scenes.
+
+- Fig. 7: position along the 16 Hz track against time, with and without the friction impulse,
+  on the flat track and on the 3 degree ramp (``bowl_track_*`` scenes).
+- Where the result flips: steady speed on the 3 degree ramp against the drive's normal
+  acceleration (Gamma), with and without the friction impulse, from the analytic point mass and
+  from the event-driven simulation of the part.
+- Fig. 8: the event-driven method against the impulse-based method on the same scenes.
+
+Each figure is a PNG in the output folder; ``paper.json`` holds the numbers behind them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from dataclasses import replace
+import json
+import logging
+import math
+import os
+from pathlib import Path
+import time
+
+import numpy as np
+
+from feeder_sim.pointmass import Conveyor, mean_speed
+from feeder_sim.scene import load_scene, Scene
+from feeder_sim.simulator import Simulator
+
+log = logging.getLogger('feeder_sim')
+
+TRACK_SCENES = {
+    (0, True): 'bowl_track_0deg',
+    (0, False): 'bowl_track_0deg_no_friction_impulse',
+    (3, True): 'bowl_track_3deg',
+    (3, False): 'bowl_track_3deg_no_friction_impulse',
+}
+FIGURES = ('fig7', 'flip', 'fig8')
+
+
+def trace(scene: Scene | str, duration_s: float, rate_hz: float = 200.0,
+          method: str | None = None) -> dict:
+    """Position along the track (m, from the start) of the first part every 1/rate_hz s."""
+    sim = Simulator(scene, method=method)
+    s0 = float(sim.track_coordinates()[0][0])
+    t, s = [0.0], [0.0]
+    wall = time.perf_counter()
+    for k in range(1, round(duration_s * rate_hz) + 1):
+        sim.advance(k / rate_hz)
+        t.append(sim.t)
+        s.append(float(sim.track_coordinates()[0][0]) - s0)
+    wall = time.perf_counter() - wall
+    return {'t_s': t, 'position_m': s, 'wall_s': wall, 'method': sim.method,
+            'wall_per_simulated_s': wall / duration_s}
+
+
+def steady_speed(scene: Scene | str, *, warmup_s: float = 1.0, measure_s: float = 2.0,
+                 method: str | None = None) -> float:
+    """Mean speed along the track (m/s) of the first part after a warm-up."""
+    sim = Simulator(scene, method=method)
+    sim.advance(warmup_s)
+    s0 = float(sim.track_coordinates()[0][0])
+    sim.advance(warmup_s + measure_s)
+    return (float(sim.track_coordinates()[0][0]) - s0) / measure_s
+
+
+def _conveyor(scene: Scene, gamma: float | None = None, friction_impulse: bool = True
+              ) -> Conveyor:
+    """The point-mass conveyor of a one-part track scene (optionally at another Gamma)."""
+    track, part = scene.bodies[0], scene.bodies[-1]
+    vib, theta = track.vibration, track.pose[2]
+    omega = 2 * math.pi * vib.frequency
+    if gamma is None:
+        gamma = vib.amplitude * omega ** 2 * math.sin(vib.angle) / (9.81 * math.cos(theta))
+    return Conveyor(psi=vib.angle, theta=theta, mu_s=part.mu_static, mu_k=part.mu_dynamic,
+                    gamma=gamma, frequency_hz=vib.frequency,
+                    frictionless_landing=not friction_impulse)
+
+
+def _with_gamma(scene: Scene, gamma: float) -> Scene:
+    track = scene.bodies[0]
+    vib, theta = track.vibration, track.pose[2]
+    omega = 2 * math.pi * vib.frequency
+    amplitude = gamma * 9.81 * math.cos(theta) / (omega ** 2 * math.sin(vib.angle))
+    track = replace(track, vibration=replace(vib, amplitude=amplitude))
+    return replace(scene, bodies=(track, *scene.bodies[1:]))
+
+
+def _plt():
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def figure7(out: Path, duration_s: float = 1.0) -> dict:
+    """Fig. 7: with and without the friction impulse, 0 and 3 degree ramps."""
+    plt = _plt()
+    data = {}
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), dpi=120, sharey=False)
+    for ax, ramp in zip(axes, (0, 3)):
+        for friction_impulse, style in ((True, '-'), (False, '--')):
+            name = TRACK_SCENES[ramp, friction_impulse]
+            run = trace(name, duration_s)
+            run['position_at_end_m'] = run['position_m'][-1]
+            data[name] = run
+            label = 'with' if friction_impulse else 'without'
+            ax.plot(run['t_s'], 1e3 * np.asarray(run['position_m']), style,
+                    label=f'{label} tangent impulse')
+        ax.set_title(f'Comparison of parts feeding speed ({ramp}° ramp)')
+        ax.set_xlabel('time [s]')
+        ax.set_ylabel('position along the track [mm]')
+        ax.grid(True, alpha=0.3)
+        ax.legend()
+    fig.suptitle('Fig. 7: feeding with and without the friction impulse (16 Hz)')
+    fig.tight_layout()
+    fig.savefig(out / 'fig7_friction_impulse.png')
+    plt.close(fig)
+    return data
+
+
+def flip(out: Path, gammas: Iterable[float] = np.round(np.arange(1.6, 3.01, 0.1), 2)) -> dict:
+    """Steady speed on the 3 degree ramp against Gamma: where the friction impulse matters."""
+    plt = _plt()
+    base = load_scene(TRACK_SCENES[3, True])
+    rows = []
+    for gamma in gammas:
+        row = {'gamma': float(gamma)}
+        for friction_impulse in (True, False):
+            key = 'with' if friction_impulse else 'without'
+            row[f'point_mass_{key}_mps'] = mean_speed(_conveyor(base, gamma, friction_impulse))
+            scene = _with_gamma(base, gamma)
+            scene = replace(scene, solver=replace(scene.solver,
+                                                  friction_impulse=friction_impulse))
+            row[f'position_1s_{key}_m'] = trace(scene, 1.0, rate_hz=16.0)['position_m'][-1]
+        rows.append(row)
+        log.info('flip sweep: Gamma %.2f done', gamma)
+    g = np.array([r['gamma'] for r in rows])
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), dpi=120)
+    for key, style in (('with', '-o'), ('without', '--s')):
+        axes[0].plot(g, [1e3 * r[f'point_mass_{key}_mps'] for r in rows], style,
+                     label=f'{key} friction impulse')
+        axes[1].plot(g, [1e3 * r[f'position_1s_{key}_m'] for r in rows], style,
+                     label=f'{key} friction impulse')
+    shipped = _conveyor(base).gamma
+    for ax in axes:
+        ax.axhline(0.0, color='k', lw=0.8)
+        ax.axvline(shipped, color='grey', ls=':', label=f'shipped scenes (Γ = {shipped:.2f})')
+        ax.set_xlabel('normal track acceleration Γ [g]')
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8)
+    axes[0].set_ylabel('steady speed up the ramp [mm/s]')
+    axes[0].set_title('point mass (analytic)')
+    axes[1].set_ylabel('position after 1 s [mm]')
+    axes[1].set_title('the part (event-driven)')
+    fig.suptitle('3° ramp, 16 Hz, drive 60°, μ = 0.3: where the friction impulse decides')
+    fig.tight_layout()
+    fig.savefig(out / 'flip_friction_impulse.png')
+    plt.close(fig)
+    return {'rows': rows, 'shipped_gamma': shipped,
+            'flips_between': _flip_interval(rows)}
+
+
+def _flip_interval(rows: list[dict]) -> list[float] | None:
+    """Gamma interval in which the part (event-driven, 1 s) starts sliding back without the
+    friction impulse while it still climbs with it."""
+    for a, b in zip(rows, rows[1:]):
+        if a['position_1s_without_m'] > 0 >= b['position_1s_without_m']:
+            return [a['gamma'], b['gamma']]
+    return None
+
+
+def figure8(out: Path, duration_s: float = 1.0) -> dict:
+    """Fig. 8: the simultaneous-LCP event-driven method against the impulse-based method."""
+    plt = _plt()
+    data = {}
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), dpi=120)
+    for ax, ramp in zip(axes, (0, 3)):
+        name = TRACK_SCENES[ramp, True]
+        for method, style in (('event_driven', '-'), ('impulse_based', '--')):
+            run = trace(name, duration_s, method=method)
+            run['steady_speed_mps'] = steady_speed(name, method=method)
+            data[f'{name}/{method}'] = run
+            ax.plot(run['t_s'], 1e3 * np.asarray(run['position_m']), style,
+                    label=f"{method} ({1e3 * run['steady_speed_mps']:.1f} mm/s steady)")
+        ax.set_title(f'Comparison of parts feeding speed ({ramp}° ramp)')
+        ax.set_xlabel('time [s]')
+        ax.set_ylabel('position along the track [mm]')
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle('Fig. 8: simultaneous frictional LCP (this method) vs impulse-based method')
+    fig.tight_layout()
+    fig.savefig(out / 'fig8_methods.png')
+    plt.close(fig)
+    return data
+
+
+_BUILDERS: dict[str, Callable[[Path], dict]] = {'fig7': figure7, 'flip': flip, 'fig8': figure8}
+
+
+def paper(out_dir: str | os.PathLike, figures: Iterable[str] = FIGURES) -> dict:
+    """Regenerate ``figures`` into ``out_dir``; returns (and writes) the numbers as JSON."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    results = {}
+    for name in figures:
+        if name not in _BUILDERS:
+            raise ValueError(f'unknown figure {name!r}; choose from {", ".join(_BUILDERS)}')
+        log.info('paper: %s ...', name)
+        t0 = time.perf_counter()
+        results[name] = _BUILDERS[name](out)
+        log.info('paper: %s done in %.1f s', name, time.perf_counter() - t0)
+    path = out / 'paper.json'
+    path.write_text(json.dumps(results, indent=1) + '\n')
+    return results
