@@ -224,6 +224,7 @@ def advance(t0, t_end, h, threshold, n_events, bodies, drives, contacts, cands, 
     g_hi = np.empty(n_events)
     _events(t0, t0, bodies, drives, contacts, cands, verts, normals, scales, pos, ang, vel, om,
             acc_drive, dv_scratch, g_lo)
+    offset = event_offsets(g_lo, cands[0].shape[0], threshold)
     tp = t0
     steps = 0
     while tp < t_end - 1e-15:
@@ -235,10 +236,10 @@ def advance(t0, t_end, h, threshold, n_events, bodies, drives, contacts, cands, 
         t1 = tp + dt
         _events(t1, t0, bodies, drives, contacts, cands, verts, normals, scales, pos, ang, vel,
                 om, acc_drive, dvel_drive, g_hi)
-        hit = (g_hi < -threshold) & (g_lo >= -threshold)
+        hit = (g_hi + offset < 0.0) & (g_lo + offset >= 0.0)
         if hit.any():
-            t_ev = _locate(tp, dt, g_lo[hit] + threshold, g_hi[hit] + threshold, hit, t0,
-                           threshold, bodies, drives, contacts, cands, verts, normals, scales,
+            t_ev = _locate(tp, dt, g_lo[hit] + offset[hit], g_hi[hit] + offset[hit], hit, t0,
+                           offset[hit], bodies, drives, contacts, cands, verts, normals, scales,
                            pos, ang, vel, om, acc_drive, dvel_drive, n_events)
             _events(t_ev, t0, bodies, drives, contacts, cands, verts, normals, scales, pos, ang,
                     vel, om, acc_drive, dvel_drive, g_hi)
@@ -252,9 +253,28 @@ def advance(t0, t_end, h, threshold, n_events, bodies, drives, contacts, cands, 
 
 
 @numba.njit(**_JIT)
-def _locate(tp, h, g_lo, g_hi, hit, t0, threshold, bodies, drives, contacts, cands, verts,
+def event_offsets(g_start, n_candidates, threshold):
+    """Per event function, what is added to it before testing for a drop below zero.
+
+    An event fires when its function drops below ``-threshold``. A collision candidate that
+    starts a phase already below that (a corner that just bounced off, located just past the
+    threshold) fires instead when it sinks ``threshold`` below where it started: otherwise a
+    bounce that lands again within one step would never be seen and the part would fall
+    through.
+    """
+    offset = np.full(g_start.shape[0], threshold)
+    first = g_start.shape[0] - n_candidates
+    for i in range(first, g_start.shape[0]):
+        if g_start[i] < -threshold:
+            offset[i] = threshold - g_start[i]
+    return offset
+
+
+@numba.njit(**_JIT)
+def _locate(tp, h, g_lo, g_hi, hit, t0, offset, bodies, drives, contacts, cands, verts,
             normals, scales, pos, ang, vel, om, acc_drive, dvel_drive, n_events):
-    """Earliest time past which a hit function is below its threshold (Illinois)."""
+    """Earliest time past which a hit function is below its level (Illinois); ``g_lo``,
+    ``g_hi`` and ``offset`` are those of the hit functions only."""
     lo, hi = 0.0, h
     best = h
     side = 0
@@ -272,7 +292,7 @@ def _locate(tp, h, g_lo, g_hi, hit, t0, threshold, bodies, drives, contacts, can
             tau = 0.5 * (lo + hi)
         _events(tp + tau, t0, bodies, drives, contacts, cands, verts, normals, scales, pos, ang,
                 vel, om, acc_drive, dvel_drive, g_all)
-        g_t = g_all[hit] + threshold
+        g_t = g_all[hit] + offset
         if (g_t < 0).any():
             hi, g_hi, best = tau, g_t, tau
             if side == -1:

@@ -455,10 +455,12 @@ class EventDriven:
             if err <= 1.0 or h < 1e-14:
                 break
             h *= max(0.2, 0.9 * err ** -0.2)
-        hit = (g1 < -_EVENT_THRESHOLD) & (g0 >= -_EVENT_THRESHOLD)
+        offset = kern.event_offsets(g0, self._mode.candidates.n, _EVENT_THRESHOLD)
+        hit = (g1 + offset < 0.0) & (g0 + offset >= 0.0)
         factor = 5.0 if err == 0 else min(5.0, max(0.2, 0.9 * err ** -0.2))
         if hit.any():
-            tau, y_ev, f_ev = self._locate(t0, y0, k0, h, g0, g1, f1, y1, hit, scratch)
+            tau, y_ev, f_ev = self._locate(t0, y0, k0, h, g0 + offset, g1 + offset, f1, y1,
+                                           hit, offset, scratch)
             self._unpack(t0 + tau, y_ev, state)
             self._accumulate_forces(f0, f_ev, tau, state)
             self._h = max(h, 1e-9)
@@ -471,8 +473,11 @@ class EventDriven:
 
     def _locate(self, t0: float, y0: np.ndarray, k0: np.ndarray, h: float, g0: np.ndarray,
                 g1: np.ndarray, f1: np.ndarray, y1: np.ndarray, hit: np.ndarray,
-                scratch: State) -> tuple[float, np.ndarray, np.ndarray]:
-        """Earliest time in (0, h] at which a hit event function reaches its threshold.
+                offset: np.ndarray, scratch: State) -> tuple[float, np.ndarray, np.ndarray]:
+        """Earliest time in (0, h] at which a hit event function reaches its level.
+
+        ``g0``, ``g1`` are the event functions with ``offset`` added (see
+        ``kern.event_offsets``): a function fires when that sum drops below zero.
 
         Illinois regula falsi on tau -> g(step(y0, tau)), bracketing the earliest crossing of
         any hit function: every trial is a full integrator step from the phase start, so the
@@ -480,8 +485,8 @@ class EventDriven:
         and the contact forces there.
         """
         lo, hi = 0.0, h
-        g_lo = g0[hit] + _EVENT_THRESHOLD
-        g_hi = g1[hit] + _EVENT_THRESHOLD
+        g_lo = g0[hit]
+        g_hi = g1[hit]
         best = (h, y1, f1)
         side = 0
         for _ in range(100):
@@ -493,7 +498,7 @@ class EventDriven:
             tau = lo + min(max(f, 1e-3), 1 - 1e-3) * (hi - lo) if np.isfinite(f) else \
                 0.5 * (lo + hi)
             y_t, _, _, g_t_all, f_t = self._dopri_step(t0, y0, tau, k0, scratch)
-            g_t = g_t_all[hit] + _EVENT_THRESHOLD
+            g_t = g_t_all[hit] + offset[hit]
             if (g_t < 0).any():
                 hi, g_hi, best = tau, g_t, (tau, y_t, f_t)
                 if side == -1:
