@@ -20,8 +20,10 @@ and ``islands`` are means per step; ``LCP rows`` is the mean size of the non-tri
 ``pgs_tol_mps``, ``pgs vres`` the worst PGS velocity residual (m/s); ``fallbk`` counts
 islands the numba Dantzig handed to ``lcp.solve``; ``max res`` is the largest
 ``lcp.residual``; ``tunnelled`` counts parts whose centre left the box between the walls and
-above the track. The numba kernels are loaded (compiled on a cold cache) by a warm-up run
-before any timing; its duration is printed and stored.
+above the track; ``KE end`` is the parts' kinetic energy at the end (mJ; the JSON also has the
+mechanical energy at the start and end and whether the state stayed finite). The numba
+kernels are loaded (compiled on a cold cache) by a warm-up run before any timing; its duration
+is printed and stored.
 """
 
 from __future__ import annotations
@@ -84,6 +86,7 @@ def run(n_parts: int, duration: float, chunk: float = 0.05) -> dict:
     t_build = time.perf_counter()
     sim = Simulator(build(pile_scene(n_parts)))
     t_build = time.perf_counter() - t_build
+    energy0 = sim.mechanical_energy()
     # record every step's contact count and the stepping method's own time
     stepper = sim._stepper
     inner = stepper.step
@@ -155,6 +158,11 @@ def run(n_parts: int, duration: float, chunk: float = 0.05) -> dict:
         'max_residual': st.max_residual,
         'max_penetration_m': st.max_penetration_m,
         'escaped': max_escaped,
+        'finite': bool(all(np.isfinite(a).all() for a in (sim.state.position, sim.state.angle,
+                                                          sim.state.velocity, sim.state.omega))),
+        'mechanical_energy_initial_j': energy0,
+        'mechanical_energy_final_j': sim.mechanical_energy(),
+        'kinetic_energy_final_j': sim.world.kinetic_energy(sim.state),
         'trace': marks,
         'messages': st.messages[:5],
     }
@@ -186,7 +194,7 @@ def main() -> None:
     head = (f'{"parts":>5} {"wall s/sim s":>12} {"cpu s/sim s":>11} {"ms/step":>8} '
             f'{"(stepper)":>9} {"contacts":>8} {"islands":>7} {"LCP rows":>8} {"max":>5} '
             f'{"PGS":>6} {"unconv":>6} {"pgs vres":>8} {"fallbk":>6} {"max res":>8} '
-            f'{"max pen m":>9} {"tunnelled":>9}')
+            f'{"max pen m":>9} {"tunnelled":>9} {"KE end mJ":>9}')
     print()
     print(head)
     for r in results:
@@ -195,7 +203,8 @@ def main() -> None:
               f'{r["contacts_mean"]:8.1f} {r["islands_mean"]:7.1f} {r["lcp_rows_mean"]:8.1f} '
               f'{r["largest_lcp_rows"]:5d} {r["pgs_solves"]:6d} {r["unconverged"]:6d} '
               f'{r["max_pgs_velocity_residual_mps"]:8.1e} {r["fallbacks"]:6d} '
-              f'{r["max_residual"]:8.1e} {r["max_penetration_m"]:9.1e} {r["escaped"]:9d}')
+              f'{r["max_residual"]:8.1e} {r["max_penetration_m"]:9.1e} {r["escaped"]:9d} '
+              f'{1e3 * r["kinetic_energy_final_j"]:9.3f}')
     print('\ncost per part and step (ms): ' + ', '.join(
         f'{r["parts"]}: {r["ms_per_step"] / r["parts"]:.3f} (stepper '
         f'{r["stepper_ms_per_step"] / r["parts"]:.3f})' for r in results))

@@ -3,15 +3,18 @@ the small-island Baraff-Dantzig solver and the large-island projected Gauss-Seid
 
 Who calls what: ``collision.find_contacts`` -> ``narrow_phase``, ``clean_contacts``;
 ``dynamics.islands`` and ``TimeStepper`` -> ``island_groups``; ``TimeStepper`` ->
-``contact_velocities``, ``solve_small`` (-> ``dantzig``), ``solve_pgs``, ``apply_impulses``.
+``drift``, ``speed_bounds``, ``contact_rows``, ``solve_small`` (-> ``dantzig``; also the position
+projection's normal-row problems), ``solve_pgs``, ``apply_impulses``, ``feature_gaps``.
 Each kernel reproduces the numpy / ``lcp`` code it replaces with the same arithmetic where
 that code is the reference (the collision kernels give the same bits as the numpy version).
 
 Compile time. Every kernel is compiled with ``cache=True``: the first run on a machine (or
-after this file changes) compiles, about 25 s on a loaded 2-core VM for what a single-box
+after this file changes) compiles, about 28 s on a 2-core VM for what a single-box
 time-stepping run needs (``solve_small`` with ``dantzig`` ~17 s, ``narrow_phase`` +
-``clean_contacts`` ~7 s, the rest ~2 s; ``solve_pgs``, first used by piles, ~3 s more);
-later runs load the machine code from ``__pycache__`` in ~0.5 s. To keep that down the code
+``clean_contacts`` ~7 s, the rest ~4 s, ``contact_rows`` the largest of it; ``solve_pgs``,
+first used by piles, ~4 s more); later runs load the machine code from ``__pycache__`` in
+~0.5 s. The position projection reuses ``solve_small`` rather than a kernel of its own, which
+would compile ``dantzig`` (17 s) a second time. To keep compile time down the code
 avoids numba's library sorts, ``searchsorted``, sets, ``lstsq``, ``@`` and array slice
 assignment (each pulls in seconds of generic code, string formatting for errors included),
 and is kept flat: numba generates every callee again inside each caller, so deep call trees
@@ -316,6 +319,180 @@ def contact_velocities(a, b, normal, r_a, r_b, velocity, omega):
     return v_n, v_t
 
 
+@numba.njit(**_JIT)
+def drift(idx, position, angle, velocity, omega, half_h, out_position, out_angle):
+    """``out = position + half_h * velocity`` (and the same for the angles) for the bodies
+    ``idx``: a half step of Moreau's midpoint scheme, with the bits of numpy's
+    ``position[idx] + 0.5 * h * velocity[idx]`` (``half_h = 0.5 * h``)."""
+    for q in range(idx.shape[0]):
+        i = idx[q]
+        out_position[i, 0] = position[i, 0] + half_h * velocity[i, 0]
+        out_position[i, 1] = position[i, 1] + half_h * velocity[i, 1]
+        out_angle[i] = angle[i] + half_h * omega[i]
+
+
+@numba.njit(**_JIT)
+def speed_bounds(velocity, omega, radius, dynamic):
+    """The largest ``|v| + |omega| r`` (speed bound of a body's points) of the dynamic bodies
+    and of the others, and the largest ``omega^2 r`` of the dynamic bodies: the numpy
+    reductions of ``TimeStepper.margin`` / ``_slip_tol`` (exact: maxima of the same values;
+    NaN propagates)."""
+    v_dyn = 0.0
+    v_other = 0.0
+    spin = 0.0
+    for i in range(velocity.shape[0]):
+        s = (np.sqrt(velocity[i, 0] * velocity[i, 0] + velocity[i, 1] * velocity[i, 1])
+             + abs(omega[i]) * radius[i])
+        if dynamic[i]:
+            v_dyn = s if s > v_dyn or s != s else v_dyn
+            q = omega[i] * omega[i] * radius[i]
+            spin = q if q > spin or q != q else spin
+        else:
+            v_other = s if s > v_other or s != s else v_other
+    return v_dyn, v_other, spin
+
+
+@numba.njit(**_JIT)
+def contact_rows(a, b, point, normal, gap, order, starts, position, v_end, w_end, v_pre, w_pre,
+                 mu_s_body, mu_d_body, e_body, h, touch, max_rows, push_out, slop, collide_speed,
+                 slip_tol, friction_impulse):
+    """The per-contact part of ``TimeStepper._contacts`` in one pass (the numpy expressions it
+    replaces are quoted; same operations in the same order, so the same bits).
+
+    Contacts come as found at the midpoint configuration (``position``); ``order`` / ``starts``
+    are their islands (``island_groups``). A contact is kept when its island is a pile
+    (``2 * size > max_rows``), it touches (``gap <= touch``) or it would close its gap by the
+    end of the step (``gap + 0.5 * h * v_N_free <= touch``). Returns the kept indices, then per
+    kept contact: ``dynamics.contact_set``'s tangent, r_a, r_b, mu_static, mu_dynamic,
+    restitution; the free end-of-step velocities v_N, v_T (``v_end`` / ``w_end``); the
+    pre-step slip v_T (``v_pre`` / ``w_pre``); pile, colliding, the normal rows' b, then
+    ``time_stepping.friction_rows``' BOX flag, mu_lo, mu_hi; and the smallest kept gap."""
+    n = a.shape[0]
+    size = np.empty(n, np.int64)
+    for i in range(starts.shape[0] - 1):
+        for q in range(starts[i], starts[i + 1]):
+            size[order[q]] = starts[i + 1] - starts[i]
+    r_a = np.empty((n, 2))
+    r_b = np.empty((n, 2))
+    vn_free = np.empty(n)
+    vt_free = np.empty(n)
+    keep = np.empty(n, np.int64)
+    m = 0
+    for i in range(n):
+        ia, ib = a[i], b[i]
+        for q in range(2):
+            r_a[i, q] = point[i, q] - position[ia, q]
+            r_b[i, q] = point[i, q] - position[ib, q]
+        # contact_velocities at the end-of-step free velocities
+        pax = v_end[ia, 0] + w_end[ia] * -r_a[i, 1]
+        pay = v_end[ia, 1] + w_end[ia] * r_a[i, 0]
+        pbx = v_end[ib, 0] + w_end[ib] * -r_b[i, 1]
+        pby = v_end[ib, 1] + w_end[ib] * r_b[i, 0]
+        rx, ry = pax - pbx, pay - pby
+        nx, ny = normal[i, 0], normal[i, 1]
+        vn_free[i] = rx * nx + ry * ny
+        vt_free[i] = rx * -ny + ry * nx
+        if (2 * size[i] > max_rows or gap[i] <= touch
+                or gap[i] + 0.5 * h * vn_free[i] <= touch):
+            keep[m] = i
+            m += 1
+    keep = keep[:m]
+    tangent = np.empty((m, 2))
+    ra = np.empty((m, 2))
+    rb = np.empty((m, 2))
+    mu_s = np.empty(m)
+    mu_d = np.empty(m)
+    rest = np.empty(m)
+    v_n = np.empty(m)
+    v_t = np.empty(m)
+    slip = np.empty(m)
+    pile = np.empty(m, np.bool_)
+    colliding = np.empty(m, np.bool_)
+    b_n = np.empty(m)
+    box = np.empty(m, np.bool_)
+    mu_lo = np.empty(m)
+    mu_hi = np.empty(m)
+    gap_min = np.inf
+    for q in range(m):
+        i = keep[q]
+        ia, ib = a[i], b[i]
+        nx, ny = normal[i, 0], normal[i, 1]
+        tangent[q, 0] = -ny
+        tangent[q, 1] = nx
+        for j in range(2):
+            ra[q, j] = r_a[i, j]
+            rb[q, j] = r_b[i, j]
+        # world.mix: friction the geometric mean, restitution the larger value
+        x, y = mu_s_body[ia], mu_s_body[ib]
+        mu_s[q] = x if x == y else np.sqrt(x * y)
+        x, y = mu_d_body[ia], mu_d_body[ib]
+        mu_d[q] = x if x == y else np.sqrt(x * y)
+        x, y = e_body[ia], e_body[ib]
+        rest[q] = x if x == y else max(x, y)
+        v_n[q] = vn_free[i]
+        v_t[q] = vt_free[i]
+        # contact_velocities at the pre-step velocities
+        pax = v_pre[ia, 0] + w_pre[ia] * -r_a[i, 1]
+        pay = v_pre[ia, 1] + w_pre[ia] * r_a[i, 0]
+        pbx = v_pre[ib, 0] + w_pre[ib] * -r_b[i, 1]
+        pby = v_pre[ib, 1] + w_pre[ib] * r_b[i, 0]
+        rx, ry = pax - pbx, pay - pby
+        vn_pre = rx * nx + ry * ny
+        vt_pre = rx * -ny + ry * nx
+        slip[q] = vt_pre
+        g = gap[i]
+        gap_min = min(gap_min, g)
+        pl = 2 * size[i] > max_rows
+        pile[q] = pl
+        touching = g <= touch
+        # colliding = (touching | ~pile) & (v_n_pre < -2 g h)
+        colliding[q] = (touching or not pl) and vn_pre < collide_speed
+        # newton = v_n_free + e min(v_n_pre, 0); push = push_out max(-gap - slop, 0) 2 / h.
+        # np.minimum / np.maximum return the second operand on a tie (the sign of a zero) and
+        # propagate NaN; numba's min / max return the first, hence the explicit forms.
+        newton = vn_free[i] + rest[q] * (vn_pre if vn_pre < 0.0 or vn_pre != vn_pre else 0.0)
+        if not pl:
+            b_n[q] = newton
+        elif touching:
+            depth = -g - slop
+            depth = depth if depth > 0.0 or depth != depth else 0.0
+            b_n[q] = newton - push_out * depth * 2.0 / h
+        else:
+            b_n[q] = vn_free[i] + 2.0 * g / h
+        # friction_rows (Kawachi): the pre-step slip picks static or one-sided dynamic
+        sliding = abs(vt_pre) > slip_tol
+        mu = mu_d[q] if sliding else mu_s[q]
+        box[q] = mu > 0.0 and (friction_impulse or not colliding[q])
+        mu_lo[q] = 0.0 if sliding and vt_pre < 0 else mu
+        mu_hi[q] = 0.0 if sliding and vt_pre > 0 else mu
+    return (keep, tangent, ra, rb, mu_s, mu_d, rest, v_n, v_t, slip, pile, colliding, b_n, box,
+            mu_lo, mu_hi, gap_min)
+
+
+@numba.njit(**_JIT)
+def feature_gaps(idx, vertex, edge, vertices, normals, vertex_body, position, cos, sin):
+    """Gaps of the vertex-edge features of contacts ``idx`` at another configuration:
+    ``collision.evaluate_gaps`` (its gap) with the same arithmetic, so the same bits; ``cos`` /
+    ``sin`` of the body angles are numpy's. Used by the position projection, which needs the
+    gaps of a few contacts, where evaluate_gaps' numpy calls cost ~70 us whatever their number."""
+    out = np.empty(idx.shape[0])
+    for q in range(idx.shape[0]):
+        i = idx[q]
+        v, e = vertex[i], edge[i]
+        ba, bb = vertex_body[v], vertex_body[e]
+        c, s = cos[ba], sin[ba]
+        x, y = vertices[v, 0], vertices[v, 1]
+        px = position[ba, 0] + (c * x - s * y)
+        py = position[ba, 1] + (s * x + c * y)
+        c, s = cos[bb], sin[bb]
+        x, y = vertices[e, 0], vertices[e, 1]
+        qx = position[bb, 0] + (c * x - s * y)
+        qy = position[bb, 1] + (s * x + c * y)
+        x, y = normals[e, 0], normals[e, 1]
+        out[q] = (c * x - s * y) * (px - qx) + (s * x + c * y) * (py - qy)
+    return out
+
+
 # ---------------------------------------------------------------------------------------------
 # island solvers: Dantzig for small islands, projected Gauss-Seidel for large ones
 
@@ -364,64 +541,119 @@ def _dense_residual(A, b, x, w, nof, lo, hi):
     return max(r, 0.0)
 
 
+# Columns of a contact's record in the projected Gauss-Seidel (``_pgs_records``): the Jacobian
+# blocks of its normal row (ja, jb: 0-5) and their M^-1 multiples (ma, mb: 6-11), the same for
+# its friction row (12-23), then b_N, b_T, the SOR steps, the diagonal entries A_ii and the
+# friction bounds.
+_R_BN, _R_BT, _R_SN, _R_ST, _R_DN, _R_DT, _R_LO, _R_HI = range(24, 32)
+_R_WIDTH = 32
+
+
 @numba.njit(**_INNER)
-def _pgs_island(lo_c, hi_c, c, a, b, ja, jb, ma, mb, step, diag, dv, b_n, b_t, box, mu_lo,
-                mu_hi, x_n, x_t, sweeps):
-    """``sweeps`` projected Gauss-Seidel sweeps (``step[i]``: SOR factor / A_ii, 0 for a row
-    without a positive pivot) over contacts
-    lo_c..hi_c-1 in order, each normal followed by its friction row, whose bounds use the
-    normal just updated (velocity form: ``dv`` holds M^-1 J^T x of the island's bodies).
+def _pgs_records(a, b, ja, jb, ma, mb, step, diag, b_n, b_t, mu_lo, mu_hi, inv_mass,
+                 inv_inertia):
+    """Everything a sweep reads about contact k in row k of one (c, 32) array, so that a sweep
+    streams through memory once instead of gathering from a dozen arrays, and per contact
+    whether its vertex / edge body is fixed (zero inverse mass and inertia)."""
+    c = a.shape[0]
+    R = np.empty((c, _R_WIDTH))
+    fixed_a = np.empty(c, np.bool_)
+    fixed_b = np.empty(c, np.bool_)
+    for k in range(c):
+        t = k + c
+        for q in range(3):
+            R[k, q] = ja[k, q]
+            R[k, 3 + q] = jb[k, q]
+            R[k, 6 + q] = ma[k, q]
+            R[k, 9 + q] = mb[k, q]
+            R[k, 12 + q] = ja[t, q]
+            R[k, 15 + q] = jb[t, q]
+            R[k, 18 + q] = ma[t, q]
+            R[k, 21 + q] = mb[t, q]
+        R[k, _R_BN] = b_n[k]
+        R[k, _R_BT] = b_t[k]
+        R[k, _R_SN] = step[k]
+        R[k, _R_ST] = step[t]
+        R[k, _R_DN] = diag[k]
+        R[k, _R_DT] = diag[t]
+        R[k, _R_LO] = mu_lo[k]
+        R[k, _R_HI] = mu_hi[k]
+        fixed_a[k] = inv_mass[a[k]] == 0.0 and inv_inertia[a[k]] == 0.0
+        fixed_b[k] = inv_mass[b[k]] == 0.0 and inv_inertia[b[k]] == 0.0
+    return R, fixed_a, fixed_b
+
+
+@numba.njit(**_INNER)
+def _pgs_island(lo_c, hi_c, a, b, R, fixed_a, fixed_b, dv, box, x_n, x_t, sweeps):
+    """``sweeps`` projected Gauss-Seidel sweeps over contacts lo_c..hi_c-1 in order, each
+    normal followed by its friction row, whose bounds use the normal just updated (velocity
+    form: ``dv`` holds M^-1 J^T x of the island's bodies; contact data in ``R``, see
+    ``_pgs_records``; steps are the SOR factor / A_ii, 0 for a row without a positive pivot).
     Always forward: alternating directions can cycle between two fixed points when contacts
     are redundant (two corners of a box edge give identical friction rows). The row updates
     are written out (no helper calls) because this is the innermost loop. Returns the largest
-    velocity change ``A_ii |dx_i|`` of the last sweep (m/s)."""
+    velocity change ``A_ii |dx_i|`` of the last sweep (m/s).
+
+    A row's w is ``b + ja . dv_a + jb . dv_b`` summed left to right. The sweep is bound by the
+    latency of that chain of additions, so the three terms of a fixed body (the track, a
+    wall) are left out: its dv stays exactly +0.0 (it only ever receives 0 * d), its terms are
+    +-0.0, and adding them can only turn a w of -0.0 into +0.0, which changes no impulse (the
+    update is skipped when d is zero) nor any other bit of the answer."""
     change = 0.0
     for _ in range(sweeps):
         change = 0.0
         for k in range(lo_c, hi_c):
             ia, ib = a[k], b[k]
-            w = (b_n[k] + ja[k, 0] * dv[ia, 0] + ja[k, 1] * dv[ia, 1] + ja[k, 2] * dv[ia, 2]
-                 + jb[k, 0] * dv[ib, 0] + jb[k, 1] * dv[ib, 1] + jb[k, 2] * dv[ib, 2])
-            xn = x_n[k] - step[k] * w
+            w = R[k, _R_BN]
+            if not fixed_a[k]:
+                w = w + R[k, 0] * dv[ia, 0] + R[k, 1] * dv[ia, 1] + R[k, 2] * dv[ia, 2]
+            if not fixed_b[k]:
+                w = w + R[k, 3] * dv[ib, 0] + R[k, 4] * dv[ib, 1] + R[k, 5] * dv[ib, 2]
+            xo = x_n[k]
+            xn = xo - R[k, _R_SN] * w
             if xn < 0.0:
                 xn = 0.0
-            d = xn - x_n[k]
+            d = xn - xo
             if d != 0.0:
-                change = max(change, abs(d) * diag[k])
-                dv[ia, 0] += ma[k, 0] * d
-                dv[ia, 1] += ma[k, 1] * d
-                dv[ia, 2] += ma[k, 2] * d
-                dv[ib, 0] += mb[k, 0] * d
-                dv[ib, 1] += mb[k, 1] * d
-                dv[ib, 2] += mb[k, 2] * d
+                change = max(change, abs(d) * R[k, _R_DN])
+                dv[ia, 0] += R[k, 6] * d
+                dv[ia, 1] += R[k, 7] * d
+                dv[ia, 2] += R[k, 8] * d
+                dv[ib, 0] += R[k, 9] * d
+                dv[ib, 1] += R[k, 10] * d
+                dv[ib, 2] += R[k, 11] * d
                 x_n[k] = xn
-            i = k + c
-            if x_n[k] == 0.0:
+            # (xn now equals x_n[k] bit for bit: x_n never holds -0.0)
+            if xn == 0.0:
                 # an open contact carries no friction: no need to evaluate its row
                 d = -x_t[k]
                 if d != 0.0:
-                    change = max(change, abs(d) * diag[i])
-                    dv[ia, 0] += ma[i, 0] * d
-                    dv[ia, 1] += ma[i, 1] * d
-                    dv[ia, 2] += ma[i, 2] * d
-                    dv[ib, 0] += mb[i, 0] * d
-                    dv[ib, 1] += mb[i, 1] * d
-                    dv[ib, 2] += mb[i, 2] * d
+                    change = max(change, abs(d) * R[k, _R_DT])
+                    dv[ia, 0] += R[k, 18] * d
+                    dv[ia, 1] += R[k, 19] * d
+                    dv[ia, 2] += R[k, 20] * d
+                    dv[ib, 0] += R[k, 21] * d
+                    dv[ib, 1] += R[k, 22] * d
+                    dv[ib, 2] += R[k, 23] * d
                     x_t[k] = 0.0
             elif box[k]:
-                w = (b_t[k] + ja[i, 0] * dv[ia, 0] + ja[i, 1] * dv[ia, 1] + ja[i, 2] * dv[ia, 2]
-                     + jb[i, 0] * dv[ib, 0] + jb[i, 1] * dv[ib, 1] + jb[i, 2] * dv[ib, 2])
-                xt = x_t[k] - step[i] * w
-                xt = min(max(xt, -mu_lo[k] * x_n[k]), mu_hi[k] * x_n[k])
-                d = xt - x_t[k]
+                w = R[k, _R_BT]
+                if not fixed_a[k]:
+                    w = w + R[k, 12] * dv[ia, 0] + R[k, 13] * dv[ia, 1] + R[k, 14] * dv[ia, 2]
+                if not fixed_b[k]:
+                    w = w + R[k, 15] * dv[ib, 0] + R[k, 16] * dv[ib, 1] + R[k, 17] * dv[ib, 2]
+                xo = x_t[k]
+                xt = xo - R[k, _R_ST] * w
+                xt = min(max(xt, -R[k, _R_LO] * xn), R[k, _R_HI] * xn)
+                d = xt - xo
                 if d != 0.0:
-                    change = max(change, abs(d) * diag[i])
-                    dv[ia, 0] += ma[i, 0] * d
-                    dv[ia, 1] += ma[i, 1] * d
-                    dv[ia, 2] += ma[i, 2] * d
-                    dv[ib, 0] += mb[i, 0] * d
-                    dv[ib, 1] += mb[i, 1] * d
-                    dv[ib, 2] += mb[i, 2] * d
+                    change = max(change, abs(d) * R[k, _R_DT])
+                    dv[ia, 0] += R[k, 18] * d
+                    dv[ia, 1] += R[k, 19] * d
+                    dv[ia, 2] += R[k, 20] * d
+                    dv[ib, 0] += R[k, 21] * d
+                    dv[ib, 1] += R[k, 22] * d
+                    dv[ib, 2] += R[k, 23] * d
                     x_t[k] = xt
     return change
 
@@ -540,6 +772,8 @@ def solve_pgs(select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_ine
     for i in range(2 * c):
         if diag[i] > 0.0:
             step[i] = omega / diag[i]
+    R, fixed_a, fixed_b = _pgs_records(a, b, ja, jb, ma, mb, step, diag, b_n, b_t, mu_lo, mu_hi,
+                                       inv_mass, inv_inertia)
     res = np.zeros(n_isl)
     vres = np.zeros(n_isl)
     work = np.zeros(n_isl, np.int64)
@@ -564,8 +798,7 @@ def solve_pgs(select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_ine
         s = 0
         while rv > tol and s < max_sweeps:
             n = min(check, max_sweeps - s)
-            change = _pgs_island(lo_c, hi_c, c, a, b, ja, jb, ma, mb, step, diag, dv, b_n, b_t,
-                                 box, mu_lo, mu_hi, x_n, x_t, n)
+            change = _pgs_island(lo_c, hi_c, a, b, R, fixed_a, fixed_b, dv, box, x_n, x_t, n)
             s += n
             if change <= tol or s >= max_sweeps:
                 r, rv = _island_residual(lo_c, hi_c, a, b, ja, jb, dv, b_n, b_t, box, mu_lo,

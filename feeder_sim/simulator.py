@@ -40,35 +40,81 @@ class ContactReport:
 
 
 class _ImpulseLog:
-    """Sums impulses per vertex-edge feature between two reports."""
+    """Sums impulses per vertex-edge feature between two reports.
+
+    A pile has hundreds of contacts per step, so nothing is done per contact in Python:
+    ``add`` keeps each step's arrays and they are reduced by feature with numpy (a stable sort
+    by feature key) every ``_REDUCE_STEPS`` steps, which bounds the memory when nobody takes
+    reports, and in ``take``. The report is what summing step by step gives: features in order
+    of first appearance since the previous report (deterministic, so recordings are too), the
+    latest point and normal, impulses summed in step order (``np.add.at`` from -0.0, so even
+    the bits and the sign of a zero match a running ``+=``).
+    """
+
+    _REDUCE_STEPS = 64
 
     def __init__(self) -> None:
-        self._rows: dict[tuple[int, int], list] = {}
+        # the reduced part (if any) first, then one per step since the last reduction:
+        # (key, point, normal, p_n, p_t, body_a, body_b)
+        self._parts: list[tuple[np.ndarray, ...]] = []
+        self._steps = 0             # parts added since the last reduction
 
     def add(self, sc: StepContacts) -> None:
         c = sc.cs.contacts
-        for i in range(c.n):
-            key = (int(c.vertex_a[i]), int(c.edge_b[i]))
-            row = self._rows.get(key)
-            if row is None:
-                self._rows[key] = [c.point[i], c.normal[i], float(sc.normal_impulse[i]),
-                                   float(sc.tangent_impulse[i]), int(c.body_a[i]),
-                                   int(c.body_b[i])]
-            else:
-                row[0], row[1] = c.point[i], c.normal[i]
-                row[2] += float(sc.normal_impulse[i])
-                row[3] += float(sc.tangent_impulse[i])
+        if not c.n:
+            return
+        key = (c.vertex_a.astype(np.int64) << 32) | c.edge_b.astype(np.int64)
+        self._parts.append((key, c.point, c.normal, sc.normal_impulse, sc.tangent_impulse,
+                            c.body_a, c.body_b))
+        self._steps += 1
+        if self._steps >= self._REDUCE_STEPS:
+            self._reduce()
+
+    def _reduce(self) -> None:
+        """Replace the parts by one with a row per feature."""
+        if not self._steps:
+            return
+        self._steps = 0
+        key, point, normal, p_n, p_t, body_a, body_b = (
+            np.concatenate(f) for f in zip(*self._parts, strict=True))
+        o = np.argsort(key, kind='stable')
+        ks = key[o]
+        head = np.empty(len(ks), bool)
+        head[0] = True
+        np.not_equal(ks[1:], ks[:-1], out=head[1:])
+        starts = np.flatnonzero(head)
+        first = o[starts]                                   # first row of each feature
+        last = o[np.append(starts[1:], len(ks)) - 1]         # latest row of each feature
+        # features numbered in order of first appearance
+        rank = np.empty(len(starts), np.int64)
+        by_first = np.argsort(first)
+        rank[by_first] = np.arange(len(starts))
+        group = np.empty(len(key), np.int64)
+        group[o] = rank[np.cumsum(head) - 1]
+        # ufunc.at adds in row order, i.e. step order, like a running sum
+        sum_n = np.full(len(starts), -0.0)
+        sum_t = np.full(len(starts), -0.0)
+        np.add.at(sum_n, group, p_n)
+        np.add.at(sum_t, group, p_t)
+        latest = last[by_first]
+        # (ndarray.take: fancy indexing of (k, 2) rows is ~10x slower)
+        self._parts = [(key[first[by_first]], point.take(latest, axis=0),
+                        normal.take(latest, axis=0), sum_n, sum_t, body_a[latest],
+                        body_b[latest])]
 
     def take(self) -> ContactReport:
-        rows = [r for r in self._rows.values() if r[2] > 0.0]
-        self._rows = {}
-        if not rows:
-            z = np.zeros(0)
-            return ContactReport(np.zeros((0, 2)), np.zeros((0, 2)), z, z.copy(),
-                                 np.zeros(0, int), np.zeros(0, int))
-        return ContactReport(np.array([r[0] for r in rows]), np.array([r[1] for r in rows]),
-                             np.array([r[2] for r in rows]), np.array([r[3] for r in rows]),
-                             np.array([r[4] for r in rows]), np.array([r[5] for r in rows]))
+        self._reduce()
+        parts, self._parts = self._parts, []
+        if parts:
+            _, point, normal, p_n, p_t, body_a, body_b = parts[0]
+            on = p_n > 0.0
+            if on.any():
+                return ContactReport(point.compress(on, axis=0), normal.compress(on, axis=0),
+                                     p_n[on], p_t[on], body_a[on].astype(np.int64),
+                                     body_b[on].astype(np.int64))
+        z = np.zeros(0)
+        return ContactReport(np.zeros((0, 2)), np.zeros((0, 2)), z, z.copy(),
+                             np.zeros(0, int), np.zeros(0, int))
 
 
 class Simulator:

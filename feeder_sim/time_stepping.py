@@ -43,18 +43,31 @@ island's problem is the ``dynamics.assemble`` layout (normals, then the friction
   stopping test because it scales with the island's largest ``|b|`` (the approach speed of
   the fastest landing part). PGS answers are approximate (velocity errors up to
   ``pgs_tol_mps``), which is the usual price of a throughput method for piles.
+
+Compiled paths and their references
+-----------------------------------
+A step's work is kept out of Python loops and per-island numpy calls (benchmarks/pile.py:
+200 parts ~2 ms per step, most of it the PGS sweeps and the contact search): the per-contact
+set-up (index set, Newton / push-out rows, Kawachi's bounds) is one kernel,
+``_kernels.contact_rows``, with the bits of the numpy code it replaced
+(``_contact_rows_reference``); the position projection of the small islands solves their
+normal-row LCPs together with the compiled Dantzig (``_kernels.solve_small``), ``lcp.solve``
+only for an island it cannot solve, where ``_project_reference`` solves each island by
+``lcp.solve`` with numpy Jacobians (same problems and pivots, positions within ~1e-18 m: the
+sums run in another order). test/test_pile.py checks both while a pile falls and settles, and
+the PGS sweep against a plain transcription of it.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
 from feeder_sim import _kernels as K
 from feeder_sim import lcp
 from feeder_sim._kernels import island_groups
-from feeder_sim.collision import evaluate_gaps, find_contacts
+from feeder_sim.collision import Contacts, evaluate_gaps, find_contacts
 from feeder_sim.dynamics import (
     assemble,
     BOX,
@@ -178,6 +191,39 @@ class _Warm:
         self.keys, self.p_n, self.p_t = keys[o], p_n[o], p_t[o]
 
 
+# Gathering rows of (k, 2) arrays by an index array: ``ndarray.take(i, axis=0)`` copies the same
+# values ~10x faster than ``a[i]`` (numpy's fancy indexing walks a 2-element subspace per row),
+# and ``compress`` / ``np.add(..., where=)`` likewise beat boolean and fancy indexing. With
+# hundreds of contacts and ~40 such arrays per step this is a tenth of a pile step.
+_CONTACT_FIELDS = tuple(f.name for f in fields(Contacts))
+
+
+def _take(contacts: Contacts, index: np.ndarray) -> Contacts:
+    """``contacts.take(index)`` (the same arrays) by ``ndarray.take``."""
+    return Contacts(*(getattr(contacts, f).take(index, axis=0) for f in _CONTACT_FIELDS))
+
+
+class _IslandGeometry:
+    """The islands of one contact set (``island_groups``) and its contacts' kinematics in
+    island order: the arguments the island kernels share (``kernel_args``: starts, body_a,
+    body_b, normal, tangent, r_a, r_b, inv_mass, inv_inertia)."""
+
+    def __init__(self, world: World, cs: ContactSet, groups: tuple | None = None) -> None:
+        c = cs.contacts
+        self.cs = cs
+        if groups is None:
+            groups = island_groups(world.n, world.dynamic, c.body_a, c.body_b)
+        self.order, self.starts, self.bodies, self.body_starts = groups
+        o = self.order
+        self.kernel_args = (self.starts, c.body_a.take(o), c.body_b.take(o),
+                            c.normal.take(o, axis=0), cs.tangent.take(o, axis=0),
+                            cs.r_a.take(o, axis=0), cs.r_b.take(o, axis=0), world.inv_mass,
+                            world.inv_inertia)
+
+    def island_bodies(self, i: int) -> np.ndarray:
+        return self.bodies[self.body_starts[i]:self.body_starts[i + 1]]
+
+
 # why a numba Dantzig pass gave up (``_kernels`` abort codes)
 _ABORTS = ('', 'pivot cap reached', 'no admissible step', 'non-finite step',
            'invalid end of a drive', 'cycling', 'row-selection budget exhausted',
@@ -196,19 +242,18 @@ class TimeStepper:
         self._radius = world.radius
         self._dyn = world.dynamic
         self._dyn_idx = np.flatnonzero(self._dyn)
-        self._kin_idx = np.flatnonzero(~self._dyn)
+        self._dyn_col = self._dyn[:, None]      # where= mask of (n, 2) arrays
         self._driven = world.driven
         self._g = float(np.linalg.norm(world.gravity))
         self._warm = _Warm(len(world.shapes.vertices))
         self._projected = np.zeros(0, bool)
+        self._geo: _IslandGeometry | None = None
 
     def margin(self, state: State, h: float) -> float:
         """Distance a vertex can close on any edge in one step (m): contacts to look at."""
         w = self.world
-        v = state.velocity
-        speed = np.sqrt(v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1]) + np.abs(state.omega) * self._radius
-        v_max = float(speed[self._dyn_idx].max(initial=0.0))
-        v_kin = float(speed[self._kin_idx].max(initial=0.0))
+        # max over dynamic / other bodies of sqrt(vx^2 + vy^2) + |omega| r, in one kernel
+        v_max, v_kin, _ = K.speed_bounds(state.velocity, state.omega, self._radius, self._dyn)
         for i in self._driven:
             d = w.drives[i]
             v_kin = max(v_kin, 2 * np.pi * d.frequency_hz * d.amplitude_m * 2)
@@ -222,14 +267,16 @@ class TimeStepper:
         t0 = state.t
         mid = state.copy()
         mid.t = t0 + 0.5 * h
-        mid.position[dyn] += 0.5 * h * state.velocity[dyn]
-        mid.angle[dyn] += 0.5 * h * state.omega[dyn]
+        # mid.position[dyn] += 0.5 h state.velocity[dyn], and the angles, in one kernel
+        K.drift(dyn, state.position, state.angle, state.velocity, state.omega, 0.5 * h,
+                mid.position, mid.angle)
         w.apply_prescribed_motion(mid)
 
         # free end-of-step velocities; driven bodies' positions and velocities at t0 + h
         end = State(t0 + h, mid.position.copy(), mid.angle, mid.velocity.copy(),
                     mid.omega.copy())
-        end.velocity[dyn] += h * w.gravity
+        # end.velocity[dyn] += h g (where= masks, not fancy indexing: see _take)
+        np.add(end.velocity, h * w.gravity, out=end.velocity, where=self._dyn_col)
         w.apply_prescribed_motion(end)
 
         contacts = find_contacts(w.shapes, mid.position, mid.angle, self._dyn,
@@ -237,9 +284,10 @@ class TimeStepper:
         report = self._contacts(contacts, state, mid, end, h) if contacts.n else None
 
         state.t = end.t
-        state.position[dyn] = mid.position[dyn] + 0.5 * h * end.velocity[dyn]
-        state.angle[dyn] = mid.angle[dyn] + 0.5 * h * end.omega[dyn]
-        state.velocity[dyn] = end.velocity[dyn]
+        # state.position[dyn] = mid.position[dyn] + 0.5 h end.velocity[dyn], and the angles
+        K.drift(dyn, mid.position, mid.angle, end.velocity, end.omega, 0.5 * h,
+                state.position, state.angle)
+        np.copyto(state.velocity, end.velocity, where=self._dyn_col)    # [dyn] = [dyn]
         state.omega[dyn] = end.omega[dyn]
         drv = self._driven
         state.position[drv] = end.position[drv]
@@ -257,8 +305,8 @@ class TimeStepper:
         friction is the right model (a static contact that cannot hold is solved again as
         sliding, so a real slip is never held back).
         """
-        dyn = self._dyn_idx
-        spin = float((state.omega[dyn] ** 2 * self._radius[dyn]).max(initial=0.0))
+        # max over dynamic bodies of omega^2 r
+        _, _, spin = K.speed_bounds(state.velocity, state.omega, self._radius, self._dyn)
         return max(self.settings.slip_tol_mps, h * spin)
 
     def _project(self, cs: ContactSet, state: State, mask: np.ndarray) -> None:
@@ -267,8 +315,68 @@ class TimeStepper:
         The midpoint scheme lets a landing vertex sink by up to h |v_N| / 2. Correcting that
         with a velocity bias would inject kinetic energy, so positions are projected instead:
         the smallest mass-weighted move (a frictionless LCP on the normal rows) that brings
-        every contact back to within ``slop_m``.
+        every contact (with ``mask``) back to within ``projection_slop_m``.
+
+        The islands with a deep contact are solved together by the compiled Dantzig
+        (``_kernels.solve_small`` with no friction rows: the normal rows of each island, the
+        problem ``_project_reference`` gives ``lcp.solve``); an island whose answer misses
+        ``lcp_tol`` is solved again by ``lcp.solve`` and its whole ladder, as before.
         """
+        w, st = self.world, self.settings
+        # gaps at the end of the step of the contacts that may be projected (bits as
+        # evaluate_gaps); islands with a deep contact hold nothing but such contacts
+        idx = np.flatnonzero(mask)
+        c = cs.contacts
+        topo = w.shapes.derived
+        gap = np.zeros(c.n)
+        gap[idx] = K.feature_gaps(idx, c.vertex_a, c.edge_b, w.shapes.vertices,
+                                  w.shapes.normals, topo.vertex_body, state.position,
+                                  np.cos(state.angle), np.sin(state.angle))
+        deep = gap < -st.projection_slop_m
+        if not deep.any():
+            return
+        geo = self._island_geometry(cs)
+        order, starts = geo.order, geo.starts
+        k = len(order)
+        sel = np.logical_or.reduceat(deep[order], starts[:-1])
+        zeros = np.zeros(k)
+        x_n = np.zeros(k)
+        res, work, codes = K.solve_small(
+            sel, *geo.kernel_args, gap[order] + st.projection_slop_m, zeros, np.zeros(k, bool),
+            zeros, zeros, x_n, np.zeros(k), np.zeros(k))
+        bad = sel & (res > st.lcp_tol)
+        ok = sel & ~bad
+        self.stats.record_batch((starts[1:] - starts[:-1])[ok], work[ok], res[ok],
+                                np.ones(int(ok.sum()), bool), 'dantzig')
+        if bad.any():
+            for i in np.flatnonzero(bad):
+                # the reference path for this island: lcp.solve's whole ladder (it records
+                # the fallback and its message)
+                lo_c, hi_c = starts[i], starts[i + 1]
+                idx = order[lo_c:hi_c]
+                x_n[lo_c:hi_c] = self._project_island(cs, idx, geo.island_bodies(i), gap[idx])
+        dv = np.zeros((w.n, 3))
+        K.apply_impulses(dv, *geo.kernel_args[1:], x_n, zeros)
+        # state.position[dyn] += dv[dyn, :2]; state.angle[dyn] += dv[dyn, 2]
+        np.add(state.position, dv[:, :2], out=state.position, where=self._dyn_col)
+        np.add(state.angle, dv[:, 2], out=state.angle, where=self._dyn)
+
+    def _project_island(self, cs: ContactSet, idx: np.ndarray, bodies: np.ndarray,
+                        gap: np.ndarray) -> np.ndarray:
+        """Normal impulses of the projection LCP of one island by ``lcp.solve`` (recorded)."""
+        st = self.settings
+        jac = island_jacobian(self.world, cs.subset(idx), bodies)
+        k = len(idx)
+        W = jac.delassus()[:k, :k]
+        problem = lcp.FrictionalLCP(W, gap + st.projection_slop_m, np.full(k, -1),
+                                    np.zeros(k), np.zeros(k))
+        result = lcp.solve(problem, tol=st.lcp_tol)
+        self.stats.record(result)
+        return result.x
+
+    def _project_reference(self, cs: ContactSet, state: State, mask: np.ndarray) -> None:
+        """``_project`` island by island through ``lcp.solve`` and numpy Jacobians: the
+        reference the compiled path is checked against (test/test_pile.py)."""
         w, st = self.world, self.settings
         gap, _ = evaluate_gaps(w.shapes, cs.contacts, state.position, state.angle)
         deep = (gap < -st.projection_slop_m) & mask
@@ -277,16 +385,19 @@ class TimeStepper:
         for bodies, idx in islands(w, cs):
             if not deep[idx].any():
                 continue
+            x = self._project_island(cs, idx, bodies, gap[idx])
             jac = island_jacobian(w, cs.subset(idx), bodies)
-            k = len(idx)
-            W = jac.delassus()[:k, :k]
-            problem = lcp.FrictionalLCP(W, gap[idx] + st.projection_slop_m, np.full(k, -1),
-                                        np.zeros(k), np.zeros(k))
-            result = lcp.solve(problem, tol=st.lcp_tol)
-            self.stats.record(result)
-            move = jac.velocity_change(np.concatenate([result.x, np.zeros(k)]))
+            move = jac.velocity_change(np.concatenate([x, np.zeros(len(idx))]))
             state.position[bodies] += move[:, :2]
             state.angle[bodies] += move[:, 2]
+
+    def _island_geometry(self, cs: ContactSet) -> _IslandGeometry:
+        """The islands of ``cs`` and its contacts' geometry in island order (cached for the
+        contact set of the current step, which the velocity solve and the projection share)."""
+        geo = self._geo
+        if geo is None or geo.cs is not cs:
+            geo = self._geo = _IslandGeometry(self.world, cs)
+        return geo
 
     # ---------------------------------------------------------------------------------------
 
@@ -294,50 +405,35 @@ class TimeStepper:
                   h: float) -> StepContacts | None:
         """Solve every island's impulse LCP; adds the velocity changes to ``end``."""
         w, st, stats = self.world, self.settings, self.stats
-        cs = contact_set(w, mid, contacts)
-        # free end-of-step velocities at the midpoint configuration
-        v_n_free, v_t_free = K.contact_velocities(contacts.body_a, contacts.body_b,
-                                                  contacts.normal, cs.r_a, cs.r_b,
-                                                  end.velocity, end.omega)
         # Small islands (solved exactly by pivoting) use the Moreau-Jean index set: a contact
         # takes part when it touches at the midpoint or would close its gap by the end of the
         # step, under Newton's law, and penetration is removed afterwards by a position
         # projection, so no velocity is spent on it. Piles (islands above direct_max_rows,
         # solved by PGS) keep speculative rows and a velocity push-out, which PGS handles
-        # robustly at their size.
-        gap = contacts.gap
-        order0, starts0, _, _ = island_groups(w.n, self._dyn, contacts.body_a, contacts.body_b)
-        size = np.empty(contacts.n, np.int64)
-        size[order0] = np.repeat(np.diff(starts0), np.diff(starts0))
-        pile = 2 * size > st.direct_max_rows
-        keep = np.flatnonzero(pile | (gap <= st.touch_m)
-                              | (gap + 0.5 * h * v_n_free <= st.touch_m))
+        # robustly at their size. (``_contact_rows_reference`` spells this out in numpy.)
+        groups = island_groups(w.n, self._dyn, contacts.body_a, contacts.body_b)
+        slip_tol = self._slip_tol(state, h)
+        rows = self._contact_rows(contacts, groups, state, mid, end, h, slip_tol)
+        keep = rows[0]
         if not len(keep):
             return None
         if len(keep) < contacts.n:
-            contacts, cs = contacts.take(keep), cs.subset(keep)
-            v_n_free, v_t_free, gap, pile = (v_n_free[keep], v_t_free[keep], gap[keep],
-                                             pile[keep])
+            contacts = _take(contacts, keep)
+            groups = None       # dropping contacts may split islands
+        (tangent, r_a, r_b, mu_s, mu_d, restitution, _, v_t_free, v_t_pre, pile, colliding, b_n,
+         box, mu_lo, mu_hi, gap_min) = rows[1:]
+        cs = ContactSet(contacts, tangent, r_a, r_b, mu_s, mu_d, restitution)
+        # islands and island-ordered kinematics, shared with the projection after the step
+        geo = self._geo = _IslandGeometry(w, cs, groups)
         c = contacts
         a, b = c.body_a, c.body_b
-        stats.max_penetration_m = max(stats.max_penetration_m, float(-gap.min()))
-        v_n_pre, v_t_pre = K.contact_velocities(a, b, c.normal, cs.r_a, cs.r_b,
-                                                state.velocity, state.omega)
-        touching = gap <= st.touch_m
-        colliding = (touching | ~pile) & (v_n_pre < -2.0 * self._g * h)
-        newton = v_n_free + cs.restitution * np.minimum(v_n_pre, 0.0)
-        push = st.push_out * np.maximum(-gap - st.slop_m, 0.0) * 2.0 / h
-        b_n = np.where(~pile, newton,
-                       np.where(touching, newton - push, v_n_free + 2.0 * gap / h))
+        stats.max_penetration_m = max(stats.max_penetration_m, float(-gap_min))
         self._projected = ~pile
-        slip_tol = self._slip_tol(state, h)
-        friction, mu_lo, mu_hi = friction_rows(cs, v_t_pre, colliding,
-                                               self.spec.friction_impulse, slip_tol)
         keys = self._warm.key(c)
         p_n = np.zeros(c.n)
         p_t = np.zeros(c.n)
 
-        order, starts, bodies, body_starts = island_groups(w.n, self._dyn, a, b)
+        order, starts = geo.order, geo.starts
         n_isl = len(starts) - 1
         stats.islands += n_isl
         # an island whose normal rows all have b >= 0 is answered by zero impulses
@@ -345,50 +441,104 @@ class TimeStepper:
         neg = np.minimum.reduceat(b_no, starts[:-1]) < 0.0
         stats.record_trivial(n_isl - int(np.count_nonzero(neg)))
         if neg.any():
-            failed = self._solve(cs, order, starts, neg, b_no, v_t_free[order],
-                                 friction[order] == BOX, mu_lo[order], mu_hi[order],
+            failed = self._solve(cs, geo, neg, b_no, v_t_free[order],
+                                 box[order], mu_lo[order], mu_hi[order],
                                  keys[order], p_n, p_t)
             for i in failed:
                 # the numba Dantzig missed the tolerance: the reference path (lcp.solve's
                 # whole ladder) solves the island again
                 idx = order[starts[i]:starts[i + 1]]
                 impulse, _ = solve_impulses(
-                    w, cs.subset(idx), bodies[body_starts[i]:body_starts[i + 1]], b_n[idx],
+                    w, cs.subset(idx), geo.island_bodies(i), b_n[idx],
                     v_t_free[idx], v_t_pre[idx], colliding[idx], self.spec.friction_impulse,
                     st, stats, slip_tol)
                 p_n[idx], p_t[idx] = impulse[:len(idx)], impulse[len(idx):]
             dv = np.zeros((w.n, 3))
             K.apply_impulses(dv, a, b, c.normal, cs.tangent, cs.r_a, cs.r_b, w.inv_mass,
                              w.inv_inertia, p_n, p_t)
-            dyn = self._dyn_idx
-            end.velocity[dyn] += dv[dyn, :2]
-            end.omega[dyn] += dv[dyn, 2]
+            # end.velocity[dyn] += dv[dyn, :2]; end.omega[dyn] += dv[dyn, 2]
+            np.add(end.velocity, dv[:, :2], out=end.velocity, where=self._dyn_col)
+            np.add(end.omega, dv[:, 2], out=end.omega, where=self._dyn)
         stats.impacts += int(np.count_nonzero(colliding & (p_n > 0)))
         self._warm.store(keys, p_n, p_t)
         return StepContacts(cs, p_n, p_t)
 
-    def _solve(self, cs: ContactSet, order, starts, todo, b_n, b_t, box, lo, hi, keys, p_n,
-               p_t) -> np.ndarray:
+    def _contact_rows(self, contacts, groups: tuple, state: State, mid: State, end: State,
+                      h: float, slip_tol: float) -> tuple:
+        """Which contacts take part and their LCP rows, by ``_kernels.contact_rows``: (kept
+        indices, tangent, r_a, r_b, mu_static, mu_dynamic, restitution, v_n_free, v_t_free,
+        v_t_pre, pile, colliding, b_n, box, mu_lo, mu_hi, smallest gap)."""
+        w, st = self.world, self.settings
+        c = contacts
+        return K.contact_rows(
+            c.body_a, c.body_b, c.point, c.normal, c.gap, groups[0], groups[1], mid.position,
+            end.velocity, end.omega, state.velocity, state.omega, w.mu_static, w.mu_dynamic,
+            w.restitution, h, st.touch_m, st.direct_max_rows, st.push_out, st.slop_m,
+            -2.0 * self._g * h, slip_tol, bool(self.spec.friction_impulse))
+
+    def _contact_rows_reference(self, contacts, groups: tuple, state: State, mid: State,
+                                end: State, h: float, slip_tol: float) -> tuple:
+        """``_contact_rows`` in numpy (``contact_set``, ``contact_velocities``,
+        ``friction_rows``): the reference the kernel is checked against (test/test_pile.py)."""
+        w, st = self.world, self.settings
+        cs = contact_set(w, mid, contacts)
+        # free end-of-step velocities at the midpoint configuration
+        v_n_free, v_t_free = K.contact_velocities(contacts.body_a, contacts.body_b,
+                                                  contacts.normal, cs.r_a, cs.r_b,
+                                                  end.velocity, end.omega)
+        gap = contacts.gap
+        order0, starts0 = groups[0], groups[1]
+        lens0 = np.diff(starts0)
+        size = np.empty(contacts.n, np.int64)
+        size[order0] = np.repeat(lens0, lens0)
+        pile = 2 * size > st.direct_max_rows
+        keep = np.flatnonzero(pile | (gap <= st.touch_m)
+                              | (gap + 0.5 * h * v_n_free <= st.touch_m))
+        contacts, cs = contacts.take(keep), cs.subset(keep)
+        v_n_free, v_t_free, gap, pile = v_n_free[keep], v_t_free[keep], gap[keep], pile[keep]
+        v_n_pre, v_t_pre = K.contact_velocities(contacts.body_a, contacts.body_b,
+                                                contacts.normal, cs.r_a, cs.r_b,
+                                                state.velocity, state.omega)
+        touching = gap <= st.touch_m
+        colliding = (touching | ~pile) & (v_n_pre < -2.0 * self._g * h)
+        newton = v_n_free + cs.restitution * np.minimum(v_n_pre, 0.0)
+        push = st.push_out * np.maximum(-gap - st.slop_m, 0.0) * 2.0 / h
+        b_n = np.where(~pile, newton,
+                       np.where(touching, newton - push, v_n_free + 2.0 * gap / h))
+        friction, mu_lo, mu_hi = friction_rows(cs, v_t_pre, colliding,
+                                               self.spec.friction_impulse, slip_tol)
+        return (keep, cs.tangent, cs.r_a, cs.r_b, cs.mu_static, cs.mu_dynamic, cs.restitution,
+                v_n_free, v_t_free, v_t_pre, pile, colliding, b_n, friction == BOX, mu_lo, mu_hi,
+                float(gap.min(initial=np.inf)))
+
+    def _solve(self, cs: ContactSet, geo: _IslandGeometry, todo, b_n, b_t, box, lo, hi, keys,
+               p_n, p_t) -> np.ndarray:
         """Islands with ``todo`` (the non-trivial ones): small ones by the numba Dantzig,
         large ones by PGS, each followed by Kawachi's second pass where a static contact
         saturated. Arrays b_n .. keys are in island order (``order``). Writes p_n / p_t and
         returns the islands whose Dantzig answer missed ``lcp_tol``."""
         w, st, stats = self.world, self.settings, self.stats
-        c = cs.contacts
-        data = (starts, c.body_a[order], c.body_b[order], c.normal[order], cs.tangent[order],
-                cs.r_a[order], cs.r_b[order], w.inv_mass, w.inv_inertia, b_n, b_t, box)
-        lens = np.diff(starts)
+        order, starts = geo.order, geo.starts
+        data = geo.kernel_args + (b_n, b_t, box)
+        lens = starts[1:] - starts[:-1]
         isl = np.repeat(np.arange(len(lens)), lens)
-        x_n, x_t = self._warm.lookup(keys)
-        x_n[~todo[isl]] = 0.0           # trivial islands: zero impulses, not last step's
-        x_t[~todo[isl]] = 0.0
-        mu_d, mu_s = cs.mu_dynamic[order], cs.mu_static[order]
+        mu_d = cs.mu_dynamic[order]
+        # contacts Kawachi's second pass may concern (none where mu_d == mu_s)
+        may_slide = box & (mu_d < cs.mu_static[order])
         rows = lens + np.add.reduceat(box, starts[:-1])
         small = todo & (rows <= st.direct_max_rows)
         large = todo & ~small
+        if large.any():
+            # PGS starts from the previous step's impulses (Dantzig from scratch)
+            x_n, x_t = self._warm.lookup(keys)
+            if not todo.all():
+                x_n[~todo[isl]] = 0.0   # trivial islands: zero impulses, not last step's
+                x_t[~todo[isl]] = 0.0
+        else:
+            x_n, x_t = np.zeros(len(keys)), np.zeros(len(keys))
         v_t_new = np.zeros(len(b_n))
         failed = np.zeros(len(lens), bool)
-        for _ in range(2):
+        for again in (True, False):
             if small.any():
                 res, work, codes = K.solve_small(small, *data, lo, hi, x_n, x_t, v_t_new)
                 bad = small & (res > st.lcp_tol)
@@ -416,14 +566,17 @@ class TimeStepper:
                             f'{res[i]:.3g}) after {work[i]} sweeps ({rows[i]} rows)')
             # A static contact driven to its bound slides within the step: from then on the
             # dynamic coefficient acts, one-sided in the direction the contact now slips.
+            if not (again and may_slide.any()):
+                break
             solved = (small | large)[isl] & ~failed[isl]
-            saturated = box & (lo == hi) & (lo > 0) & (np.abs(x_t) >= lo * x_n * (1 - 1e-9)) \
-                & (x_n > 0) & (np.abs(v_t_new) > st.slip_tol_mps) & (mu_d < mu_s) & solved
+            saturated = may_slide & (lo == hi) & (lo > 0) \
+                & (np.abs(x_t) >= lo * x_n * (1 - 1e-9)) & (x_n > 0) \
+                & (np.abs(v_t_new) > st.slip_tol_mps) & solved
             if not saturated.any():
                 break
-            again = np.zeros(len(lens), bool)
-            again[isl[saturated]] = True
-            small, large = small & again, large & again
+            redo = np.zeros(len(lens), bool)
+            redo[isl[saturated]] = True
+            small, large = small & redo, large & redo
             lo = np.where(saturated, np.where(v_t_new > 0, mu_d, 0.0), lo)
             hi = np.where(saturated, np.where(v_t_new < 0, mu_d, 0.0), hi)
         p_n[order] = x_n

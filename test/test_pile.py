@@ -1,0 +1,294 @@
+"""The compiled paths of ``time_stepping`` on a small pile against straightforward references.
+
+Parts dropped on a walled vibrating track (as ``benchmarks/pile.py``, fewer parts) give every
+kind of island: single parts landing, small stacks projected out of the track, piles for the
+projected Gauss-Seidel. Each compiled path is checked against the code it replaced while the
+simulation runs: the per-contact rows (``_kernels.contact_rows``) bit for bit against numpy, the
+position projection (``solve_small`` on the normal rows) against ``lcp.solve`` island by island,
+the PGS kernel bit for bit against a plain transcription, and the vectorised impulse log bit for
+bit against a running sum per feature.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from feeder_sim import _kernels as K
+from feeder_sim.builders import build, conveyor
+from feeder_sim.collision import evaluate_gaps
+from feeder_sim.simulator import _ImpulseLog, ContactReport, Simulator
+import feeder_sim.time_stepping as TS
+
+
+def pile(n_parts, seed=1, materials=False, friction_impulse=True):
+    """``n_parts`` 20 x 10 mm boxes in staggered rows above a walled 0.4 m track (50 Hz)."""
+    length = 0.4
+    scene = conveyor(psi=math.radians(30.0), mu=0.5, theta=0.0, gamma=1.2, frequency_hz=50.0,
+                     method='time_stepping', time_step=1e-3, n_parts=n_parts, walls=True,
+                     track_length=length, spacing=0.03, friction_impulse=friction_impulse)
+    rng = np.random.default_rng(seed)
+    per_row = int((length - 0.04) // 0.03)
+    parts = [b for b in scene['bodies'] if b['type'] == 'dynamic']
+    for i, body in enumerate(parts):
+        row, col = divmod(i, per_row)
+        in_row = min(per_row, len(parts) - row * per_row)
+        pitch = (length - 0.04) / per_row
+        x = (col - 0.5 * (in_row - 1)) * pitch + (0.25 * pitch if row % 2 else 0.0)
+        y = 0.02 + 0.02 * row + rng.uniform(0.0, 0.004)
+        body['pose'] = [float(x + rng.uniform(-0.003, 0.003)), float(y),
+                        float(rng.uniform(-0.3, 0.3))]
+        if materials:
+            # unequal static / dynamic friction (Kawachi's second pass) and restitution
+            body['mu_static'] = float(rng.uniform(0.3, 0.7))
+            body['mu_dynamic'] = 0.7 * body['mu_static']
+            body['restitution'] = float(rng.choice([0.0, 0.3]))
+    return Simulator(build(scene))
+
+
+def same_bits(x, y):
+    x, y = np.asarray(x), np.asarray(y)
+    return x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes()
+
+
+@pytest.mark.parametrize('materials, friction_impulse', [(False, True), (True, False)])
+def test_contact_rows_kernel_gives_the_numpy_bits(materials, friction_impulse):
+    sim = pile(24, materials=materials, friction_impulse=friction_impulse)
+    stepper = sim._stepper
+    kernel = stepper._contact_rows
+    checked = []
+
+    def rows(*args):
+        got = kernel(*args)
+        ref = stepper._contact_rows_reference(*args)
+        assert len(got) == len(ref)
+        for i, (x, y) in enumerate(zip(got[:-1], ref[:-1], strict=True)):
+            assert same_bits(x, y), f'output {i} differs at t = {sim.t}'
+        assert got[-1] == ref[-1]
+        checked.append(len(got[0]))
+        return got
+
+    stepper._contact_rows = rows
+    sim.advance(0.2)
+    assert len(checked) > 100 and sum(checked) > 2000
+
+
+def test_compiled_projection_matches_lcp_solve():
+    sim = pile(30)
+    stepper = sim._stepper
+    compiled = stepper._project
+    st = sim.stats
+    worst = [0.0, 0.0]
+    projected = []
+
+    def project(cs, state, mask):
+        w = sim.world
+        topo = w.shapes.derived
+        idx = np.flatnonzero(mask)
+        gap = K.feature_gaps(idx, cs.contacts.vertex_a, cs.contacts.edge_b, w.shapes.vertices,
+                             w.shapes.normals, topo.vertex_body, state.position,
+                             np.cos(state.angle), np.sin(state.angle))
+        ref_gap = evaluate_gaps(w.shapes, cs.contacts, state.position, state.angle)[0]
+        assert same_bits(gap, ref_gap[idx])
+        ref = state.copy()
+        before = (st.lcp_solves, st.lcp_rows, st.pivots, st.fallbacks, st.unconverged)
+        stepper._project_reference(cs, ref, mask)
+        mid = (st.lcp_solves, st.lcp_rows, st.pivots, st.fallbacks, st.unconverged)
+        compiled(cs, state, mask)
+        after = (st.lcp_solves, st.lcp_rows, st.pivots, st.fallbacks, st.unconverged)
+        # the same problems, solved with the same pivots
+        assert np.subtract(mid, before).tolist() == np.subtract(after, mid).tolist()
+        if after != mid:
+            projected.append(after[0] - mid[0])
+        worst[0] = max(worst[0], float(np.abs(state.position - ref.position).max()))
+        worst[1] = max(worst[1], float(np.abs(state.angle - ref.angle).max()))
+
+    stepper._project = project
+    sim.advance(0.25)
+    assert sum(projected) > 50              # islands projected
+    assert worst[0] <= 1e-12 and worst[1] <= 1e-12
+
+
+def pgs_reference(select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, b_n,
+                  b_t, box, mu_lo, mu_hi, x_n, x_t, w_t, dv, tol, max_sweeps, check, omega):
+    """``_kernels.solve_pgs`` as it was written before the sweep was tuned, in plain Python."""
+    c = len(a)
+    ja, jb, ma, mb = (np.empty((2 * c, 3)) for _ in range(4))
+    for i in range(2 * c):
+        k = i if i < c else i - c
+        dx, dy = (normal[k] if i < c else tangent[k]).tolist()
+        ja[i] = dx, dy, r_a[k, 0] * dy - r_a[k, 1] * dx
+        jb[i] = -dx, -dy, -(r_b[k, 0] * dy - r_b[k, 1] * dx)
+        ma[i] = inv_mass[a[k]] * ja[i, 0], inv_mass[a[k]] * ja[i, 1], inv_inertia[a[k]] * ja[i, 2]
+        mb[i] = inv_mass[b[k]] * jb[i, 0], inv_mass[b[k]] * jb[i, 1], inv_inertia[b[k]] * jb[i, 2]
+    diag = [ja[i, 0] * ma[i, 0] + ja[i, 1] * ma[i, 1] + ja[i, 2] * ma[i, 2] + jb[i, 0] * mb[i, 0]
+            + jb[i, 1] * mb[i, 1] + jb[i, 2] * mb[i, 2] for i in range(2 * c)]
+    step = [omega / d if d > 0.0 else 0.0 for d in diag]
+
+    def row_w(i, k, bias):
+        ia, ib = a[k], b[k]
+        return (bias + ja[i, 0] * dv[ia, 0] + ja[i, 1] * dv[ia, 1] + ja[i, 2] * dv[ia, 2]
+                + jb[i, 0] * dv[ib, 0] + jb[i, 1] * dv[ib, 1] + jb[i, 2] * dv[ib, 2])
+
+    def row_add(i, k, d):
+        dv[a[k]] += ma[i] * d
+        dv[b[k]] += mb[i] * d
+
+    def residual(lo_c, hi_c):
+        amax = bmax = xmax = 0.0
+        for k in range(lo_c, hi_c):
+            amax, bmax, xmax = max(amax, diag[k]), max(bmax, abs(b_n[k])), max(xmax, abs(x_n[k]))
+            if box[k]:
+                amax, bmax = max(amax, diag[k + c]), max(bmax, abs(b_t[k]))
+                xmax = max(xmax, abs(x_t[k]))
+        s_w = max(1e-300, max(bmax, amax * xmax))
+        s_x = s_w / amax if amax > 0.0 else max(1e-300, xmax)
+        r = rv = 0.0
+        for k in range(lo_c, hi_c):
+            w, x = row_w(k, k, b_n[k]), x_n[k]
+            r = max(r, max(-x / s_x, max(-w / s_w, abs(x * w) / (s_x * s_w))))
+            if diag[k] > 0.0:
+                rv = max(rv, abs(x - max(x - w / diag[k], 0.0)) * diag[k])
+            wt = w_t[k] = row_w(k + c, k, b_t[k])
+            if box[k]:
+                xj, xk = max(x, 0.0), x_t[k]
+                dl, dh = xk + mu_lo[k] * xj, mu_hi[k] * xj - xk
+                away = wt * max(dl, 0.0) if wt > 0.0 else -wt * max(dh, 0.0)
+                r = max(r, max(-dl / s_x, max(-dh / s_x, away / (s_x * s_w))))
+                if diag[k + c] > 0.0:
+                    y = min(max(xk - wt / diag[k + c], -mu_lo[k] * xj), mu_hi[k] * xj)
+                    rv = max(rv, abs(xk - y) * diag[k + c])
+        return max(r, 0.0), rv
+
+    def sweep(lo_c, hi_c):
+        change = 0.0
+        for k in range(lo_c, hi_c):
+            xn = max_(x_n[k] - step[k] * row_w(k, k, b_n[k]))
+            d = xn - x_n[k]
+            if d != 0.0:
+                change = max(change, abs(d) * diag[k])
+                row_add(k, k, d)
+                x_n[k] = xn
+            i = k + c
+            if x_n[k] == 0.0:
+                d = -x_t[k]
+                if d != 0.0:
+                    change = max(change, abs(d) * diag[i])
+                    row_add(i, k, d)
+                    x_t[k] = 0.0
+            elif box[k]:
+                xt = x_t[k] - step[i] * row_w(i, k, b_t[k])
+                xt = min(max(xt, -mu_lo[k] * x_n[k]), mu_hi[k] * x_n[k])
+                d = xt - x_t[k]
+                if d != 0.0:
+                    change = max(change, abs(d) * diag[i])
+                    row_add(i, k, d)
+                    x_t[k] = xt
+        return change
+
+    def max_(x):
+        return 0.0 if x < 0.0 else x
+
+    n_isl = len(starts) - 1
+    res, vres, work = np.zeros(n_isl), np.zeros(n_isl), np.zeros(n_isl, np.int64)
+    for isl in np.flatnonzero(select):
+        lo_c, hi_c = starts[isl], starts[isl + 1]
+        for k in range(lo_c, hi_c):
+            if not (x_n[k] > 0.0):
+                x_n[k] = 0.0
+            x_t[k] = min(max(x_t[k], -mu_lo[k] * x_n[k]), mu_hi[k] * x_n[k]) if box[k] else 0.0
+            row_add(k, k, x_n[k])
+            row_add(k + c, k, x_t[k])
+        r, rv = residual(lo_c, hi_c)
+        s = 0
+        while rv > tol and s < max_sweeps:
+            change = sweep(lo_c, hi_c)
+            s += 1
+            if change <= tol or s >= max_sweeps:
+                r, rv = residual(lo_c, hi_c)
+        res[isl], vres[isl], work[isl] = r, rv, s
+    return res, vres, work
+
+
+def test_pgs_kernel_gives_the_bits_of_a_plain_transcription():
+    sim = pile(24)
+    sim._stepper.settings.direct_max_rows = 0      # every island to PGS
+    sim.advance(0.15)
+    kernel = TS.K.solve_pgs
+    calls = []
+
+    def solve_pgs(*args):
+        calls.append([x.copy() if isinstance(x, np.ndarray) else x for x in args])
+        return kernel(*args)
+
+    TS.K.solve_pgs = solve_pgs
+    try:
+        sim.advance(0.16)
+    finally:
+        TS.K.solve_pgs = kernel
+    assert calls
+    sweeps = 0
+    for args in calls:
+        ref_args = [x.copy() if isinstance(x, np.ndarray) else x for x in args]
+        got = kernel(*args)
+        ref = pgs_reference(*ref_args)
+        for x, y in zip(got, ref, strict=True):
+            assert same_bits(x, y)
+        for i in (15, 16, 17, 18):                  # x_n, x_t, w_t, dv
+            assert same_bits(args[i], ref_args[i])
+        sweeps += int(got[2].sum())
+    assert sweeps > 100
+
+
+class _RunningLog:
+    """The impulse log as it was: a dict of running sums, features in order of appearance."""
+
+    def __init__(self):
+        self.rows = {}
+
+    def add(self, sc):
+        c = sc.cs.contacts
+        for i in range(c.n):
+            key = (int(c.vertex_a[i]), int(c.edge_b[i]))
+            row = self.rows.get(key)
+            if row is None:
+                self.rows[key] = [c.point[i], c.normal[i], float(sc.normal_impulse[i]),
+                                  float(sc.tangent_impulse[i]), int(c.body_a[i]),
+                                  int(c.body_b[i])]
+            else:
+                row[0], row[1] = c.point[i], c.normal[i]
+                row[2] += float(sc.normal_impulse[i])
+                row[3] += float(sc.tangent_impulse[i])
+
+    def take(self):
+        rows = [r for r in self.rows.values() if r[2] > 0.0]
+        self.rows = {}
+        if not rows:
+            z = np.zeros(0)
+            return ContactReport(np.zeros((0, 2)), np.zeros((0, 2)), z, z.copy(),
+                                 np.zeros(0, int), np.zeros(0, int))
+        return ContactReport(*(np.array([r[i] for r in rows]) for i in range(6)))
+
+
+@pytest.mark.parametrize('reduce_steps', [64, 3])
+def test_impulse_log_reports_the_running_sums(reduce_steps):
+    sim = pile(30)
+    log, ref = _ImpulseLog(), _RunningLog()
+    log._REDUCE_STEPS = reduce_steps            # 3: many reductions between two reports
+    rng = np.random.default_rng(0)
+    next_take, reports, rows = 40, 0, 0
+    for k in range(300):
+        sc = sim._stepper.step(sim.state)
+        if sc is not None:
+            log.add(sc)
+            ref.add(sc)
+        if k == next_take:
+            next_take += int(rng.integers(1, 60))
+            got, want = log.take(), ref.take()
+            for f in ('point', 'normal', 'normal_impulse', 'tangent_impulse', 'body_a',
+                      'body_b'):
+                assert same_bits(getattr(got, f), getattr(want, f)), f
+            reports += 1
+            rows += got.n
+    assert reports >= 5 and rows > 200
+    assert log.take().n == ref.take().n
