@@ -16,6 +16,7 @@ import numpy as np
 
 from feeder_sim.dynamics import SolverStats
 from feeder_sim.event_driven import EventDriven
+from feeder_sim.impulse_based import ImpulseBased
 from feeder_sim.scene import load_scene, Scene
 from feeder_sim.time_stepping import StepContacts, TimeStepper
 from feeder_sim.world import State, World
@@ -147,9 +148,7 @@ class Simulator:
             return TimeStepper(self.world, spec, self.stats)
         if spec.method == 'event_driven':
             return EventDriven(self.world, spec, self.stats)
-        raise NotImplementedError(
-            "solver.method 'impulse_based' (Mirtich & Canny) is not available in this "
-            "version; use 'event_driven' or 'time_stepping'")
+        return ImpulseBased(self.world, spec, self.stats)
 
     @property
     def t(self) -> float:
@@ -181,7 +180,7 @@ class Simulator:
         for i in self.world.driven:
             self.world.drives[i].command(self.state.t, amplitude_m, frequency_hz)
         self.world.apply_prescribed_motion(self.state)
-        if isinstance(self._stepper, EventDriven):
+        if isinstance(self._stepper, (EventDriven, ImpulseBased)):
             self._stepper.reset()
 
     def reset(self) -> None:

@@ -65,3 +65,22 @@ def test_paper_command_writes_figures_and_the_numbers_behind_them(tmp_path):
     assert low < data['flip']['shipped_gamma'] and 2.3 <= low < high <= 2.6
     rows = {r['gamma']: r for r in data['flip']['rows']}
     assert rows[high]['point_mass_without_mps'] < 0 < rows[low]['point_mass_without_mps']
+
+
+@pytest.mark.parametrize('scene', ['bowl_track_0deg', 'bowl_track_3deg'])
+def test_impulse_based_feeds_at_the_event_driven_speed(scene):
+    # Fig. 8: the two methods agree on the steady feeding speed (issue target 5 %).
+    from feeder_sim.paper import steady_speed
+
+    lcp = steady_speed(scene, method='event_driven')
+    impulses = steady_speed(scene, method='impulse_based')
+    assert impulses == pytest.approx(lcp, rel=0.01)
+
+
+def test_the_simulator_runs_the_impulse_based_method_with_its_contact_log():
+    sim = Simulator('incline_stick', method='impulse_based')
+    sim.advance(0.2)
+    report = sim.take_contacts()
+    # Micro-collisions carry the block's weight: total normal impulse m g cos(theta) t.
+    weight = sim.world.mass[1] * 9.81 * math.cos(sim.scene.bodies[0].pose[2])
+    assert report.normal_impulse.sum() == pytest.approx(weight * 0.2, rel=0.02)
