@@ -39,7 +39,7 @@ setup(
     entry_points={
         'console_scripts': [
             'feeder-sim = feeder_sim.cli:main',
-            'sim_node = feeder_sim.sim_node:main',
+            'sim_node = feeder_sim.node_entry:main',
         ],
     },
 )

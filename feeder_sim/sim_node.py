@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import os
 import signal
 import sys
+import threading
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
@@ -39,7 +40,6 @@ from rcl_interfaces.msg import (
     SetParametersResult,
 )
 import rclpy
-from rclpy._rclpy_pybind11 import RCLError
 from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -47,6 +47,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
+from rclpy.signals import SignalHandlerOptions
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState, PointCloud2
 from std_msgs.msg import Float64MultiArray
@@ -461,34 +462,46 @@ class SimNode(Node):
         return response
 
 
-def main(args: list[str] | None = None) -> int:
-    """Entry point of ``sim_node``: spin until duration, Ctrl-C or SIGTERM; finalize the log."""
-    rclpy.init(args=args)
+def main(args: list[str] | None = None, stop: threading.Event | None = None) -> int:
+    """Run the node: spin until duration, Ctrl-C or SIGTERM; finalize the log.
+
+    SIGINT and SIGTERM only set ``stop``, which the loop reads between callbacks: an exception
+    thrown into the middle of a frame (a kernel being compiled, a chunk being written) would
+    leave a traceback instead of a clean exit with a finalized log. ``stop`` is given by the
+    console entry point (:mod:`feeder_sim.node_entry`), which sets the handlers up before
+    anything heavy is imported.
+    """
+    previous = {}
+    if stop is None:
+        stop = threading.Event()
+        previous = {sig: signal.signal(sig, lambda signum, frame: stop.set())
+                    for sig in (signal.SIGINT, signal.SIGTERM)}
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     try:
         node = SimNode()
     except (ParameterException, SceneError, ValueError, OSError, NotImplementedError) as err:
         print(f'sim_node: error: {err}', file=sys.stderr)
         rclpy.try_shutdown()
+        _restore(previous)
         return 2
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     try:
-        while rclpy.ok() and not node.done:
+        while rclpy.ok() and not node.done and not stop.is_set():
             executor.spin_once(timeout_sec=0.1)
-    except (KeyboardInterrupt, ExternalShutdownException):
+    except ExternalShutdownException:
         pass
-    except RCLError:
-        # A signal shut the context down in the middle of a frame's publishing.
-        if rclpy.ok():
-            raise
     finally:
-        # A second signal while the log is being finalized must not cut it short.
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
         node.close()
         node.destroy_node()
         rclpy.try_shutdown()
+        _restore(previous)
     return node.exit_code
+
+
+def _restore(handlers: dict) -> None:
+    for sig, handler in handlers.items():
+        signal.signal(sig, handler)
 
 
 if __name__ == '__main__':
