@@ -186,7 +186,7 @@ def test_params_file_namespace_and_duration(workspace, tmp_path, processes):
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(probe)
         proc = start_node(workspace, processes, '--params-file', str(params), '-r', '__ns:=/cell1',
-                          '-p', 'duration:=3.0', '-p', 'real_time_factor:=2.0')
+                          '-p', 'duration:=5.0', '-p', 'real_time_factor:=1.0')
         end = time.monotonic() + 90
         while proc.poll() is None and time.monotonic() < end:
             executor.spin_once(timeout_sec=0.05)
@@ -196,8 +196,9 @@ def test_params_file_namespace_and_duration(workspace, tmp_path, processes):
     assert proc.returncode == 0, err
     assert 'duration reached' in err + out
     assert states and states[-1].name == ['box']
-    # A 3 s run paced at twice real time publishes its frames over about 1.5 s of wall time.
-    assert states[-1].header.stamp.sec * 10**9 + states[-1].header.stamp.nanosec > 1e9
+    # Paced at real time, the run lasts long enough for discovery on a loaded machine; the
+    # node builds track_state only once the probe has matched, and stops by itself at 5 s.
+    assert states[-1].header.stamp.sec * 10**9 + states[-1].header.stamp.nanosec >= 4 * 10**9
 
 
 def test_bad_scene_is_one_clear_line_and_exit_status_2(workspace, processes):
