@@ -17,6 +17,7 @@ import time
 import numpy as np
 
 from feeder_sim import __version__
+from feeder_sim.outcomes import OutcomeTracker
 from feeder_sim.scene import scene_to_dict
 from feeder_sim.simulator import ContactReport, Simulator
 
@@ -108,6 +109,9 @@ def run(sim: Simulator, duration_s: float, *, publish_rate_hz: float = 100.0,
     recorder = open_recorder(sim, record) if record is not None else None
     names = sim.part_poses()[0]
     traj = Trajectory(names)
+    outcomes = OutcomeTracker(names, sim.scene.outcomes)
+    w = sim.world
+    track_angle = w.base_angle[w.track_index] if w.track_index is not None else 0.0
     t0 = sim.t
     period = 1.0 / publish_rate_hz
     n_frames = int(round(duration_s / period))
@@ -120,6 +124,7 @@ def run(sim: Simulator, duration_s: float, *, publish_rate_hz: float = 100.0,
             sim.advance(t0 + min(k * period, duration_s))
             frame = Frame.take(sim)
             traj.t.append(sim.t), traj.s.append(frame.s), traj.speed.append(frame.speed)
+            outcomes.update(sim.t, frame.s, frame.angle - track_angle)
             if recorder is not None:
                 record_frame(recorder, frame)
             if on_frame is not None:
@@ -129,11 +134,15 @@ def run(sim: Simulator, duration_s: float, *, publish_rate_hz: float = 100.0,
                 last_report = now
                 log.info('t = %.3f / %.3f s simulated (%.0f%%), %.1f s wall',
                          sim.t - t0, duration_s, 100 * k / n_frames, now - wall0)
+        if recorder is not None:
+            recorder.write_metadata('outcomes', {'json': json.dumps(outcomes.summary())})
     finally:
         if recorder is not None:
             recorder.close()
     wall = time.perf_counter() - wall0
-    return RunResult(summary(sim, traj, wall, duration_s), traj)
+    result = summary(sim, traj, wall, duration_s)
+    result['outcomes'] = outcomes.summary()
+    return RunResult(result, traj)
 
 
 def summary(sim: Simulator, traj: Trajectory, wall_s: float, duration_s: float) -> dict:

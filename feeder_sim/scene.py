@@ -32,7 +32,7 @@ from feeder_sim import geometry
 
 __all__ = [
     'BODY_TYPES', 'METHODS', 'BodySpec', 'Scene', 'SceneError', 'SolverSpec', 'Vibration',
-    'load_scene', 'parse_scene', 'scene_dirs', 'scene_to_dict', 'shipped_scenes',
+    'load_scene', 'OutcomeSpec', 'parse_scene', 'scene_dirs', 'scene_to_dict', 'shipped_scenes',
 ]
 
 METHODS = ('event_driven', 'time_stepping', 'impulse_based')
@@ -167,6 +167,17 @@ class BodySpec(_ArrayFieldsEq):
         return geometry.mass_properties(self.pieces, mass=self.mass, density=self.density)
 
 
+@dataclass(frozen=True)
+class OutcomeSpec:
+    """What a designer reads off a run: parts leaving at ``exit_position`` (m along the track;
+    None: no exit) and jams, a part that moves less than ``jam_distance`` (m) along the track
+    during ``jam_time`` (s) before it has left."""
+
+    exit_position: float | None = None
+    jam_time: float = 1.0
+    jam_distance: float = 1e-3
+
+
 @dataclass(frozen=True, eq=False)
 class Scene(_ArrayFieldsEq):
     """A validated scene. ``gravity`` in m/s^2 (world frame, read-only); ``track`` names the body
@@ -178,6 +189,7 @@ class Scene(_ArrayFieldsEq):
     bodies: tuple[BodySpec, ...]
     track: str | None = None
     source: str = '<dict>'
+    outcomes: OutcomeSpec = OutcomeSpec()
 
     def __post_init__(self):
         object.__setattr__(self, 'gravity', _frozen(self.gravity, (2,)))
@@ -571,7 +583,23 @@ _TOP = {
     'track': _Field(_track_name, 'the name of a body', _AUTO, nullable=True),
     'solver': _Field(_solver, 'a mapping of solver settings', SolverSpec(), nullable=True),
     'bodies': _Field(_bodies, 'a non-empty list of bodies'),
+    'outcomes': _Field(lambda v, p: _outcomes(v, p), 'a mapping of outcome settings',
+                       OutcomeSpec(), nullable=True),
 }
+
+
+_OUTCOMES = {
+    'exit_position': _Field(lambda v, p: None if v is None else _number(v, p, unit='m'),
+                            'the along-track position (m) where parts leave', None,
+                            nullable=True),
+    'jam_time': _Field(_num(0.0, lo_open=True, unit='s'), 'a time in s', OutcomeSpec.jam_time),
+    'jam_distance': _Field(_num(0.0, lo_open=True, unit='m'), 'a distance in m',
+                           OutcomeSpec.jam_distance),
+}
+
+
+def _outcomes(value, path: str) -> OutcomeSpec:
+    return OutcomeSpec(**_fields({} if value is None else value, path, _OUTCOMES))
 
 
 def _default_track(bodies: tuple[BodySpec, ...]) -> str | None:
@@ -601,7 +629,8 @@ def parse_scene(data: Mapping, source: str = '<dict>') -> Scene:
                                     f'expected one of: {", ".join(names)}')
         name = _default_name(source) if f['name'] is _AUTO else f['name']
         return Scene(name=name, gravity=f['gravity'], solver=f['solver'], bodies=bodies,
-                     track=track, source=source)
+                     track=track, source=source,
+                     outcomes=f['outcomes'] if f['outcomes'] is not None else OutcomeSpec())
     except _Invalid as err:
         raise SceneError(err.message, err.path, source) from None
 
@@ -778,4 +807,5 @@ def scene_to_dict(scene: Scene) -> dict:
                    'tolerance': float(s.tolerance),
                    'restitution_law': s.restitution_law},
         'bodies': bodies,
+        'outcomes': {f.name: getattr(scene.outcomes, f.name) for f in fields(OutcomeSpec)},
     }

@@ -1,0 +1,51 @@
+"""Outcome measures: exits, feed rate, exit orientation and jams, in the summary and the log."""
+
+from dataclasses import replace
+import json
+
+from mcap.reader import make_reader
+import numpy as np
+import pytest
+
+from feeder_sim.outcomes import OutcomeTracker
+from feeder_sim.run import run
+from feeder_sim.scene import load_scene, OutcomeSpec
+from feeder_sim.simulator import Simulator
+
+
+def test_tracker_on_prescribed_motion():
+    tracker = OutcomeTracker(('a', 'b'), OutcomeSpec(exit_position=1.0, jam_time=0.5,
+                                                     jam_distance=1e-3))
+    for k in range(201):
+        t = k * 0.01
+        tracker.update(t, np.array([t, 0.2]), np.array([0.1, 3.0]))
+    out = tracker.summary()
+    a, b = out['parts']
+    assert a['exit_time_s'] == pytest.approx(1.0) and a['exit_angle_rad'] == pytest.approx(0.1)
+    assert a['jam_time_s'] is None
+    assert b['exit_time_s'] is None and b['jam_time_s'] == pytest.approx(0.5)
+    assert out['parts_exited'] == 1 and out['jams'] == 1
+    assert out['feed_rate_parts_per_min'] == pytest.approx(60.0 / 2.0)
+
+
+def test_feeding_part_exits_and_a_resting_one_jams(tmp_path):
+    base = load_scene('track_one_box')
+    # The box starts 0.4 m before the track's middle and feeds at about 40 mm/s.
+    feeding = replace(base, outcomes=OutcomeSpec(exit_position=-0.38, jam_time=0.5))
+    result = run(Simulator(feeding), 1.5, record=tmp_path / 'feed.mcap')
+    part = result.summary['outcomes']['parts'][0]
+    assert 0.4 < part['exit_time_s'] < 0.7
+    assert abs(part['exit_angle_rad']) < 1e-6            # flat, as it rode
+    assert part['jam_time_s'] is None
+    with open(tmp_path / 'feed.mcap', 'rb') as f:
+        meta = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
+    assert json.loads(meta['outcomes']['json']) == result.summary['outcomes']
+
+    track = base.bodies[0]
+    still = replace(base, bodies=(replace(track, vibration=replace(track.vibration,
+                                                                   amplitude=0.0)),
+                                  *base.bodies[1:]),
+                    outcomes=OutcomeSpec(exit_position=-0.38, jam_time=0.5))
+    out = run(Simulator(still), 1.0).summary['outcomes']
+    assert out['jams'] == 1 and out['parts'][0]['jam_time_s'] == pytest.approx(0.5, abs=0.011)
+    assert out['parts_exited'] == 0 and out['feed_rate_parts_per_min'] == 0.0
