@@ -33,7 +33,7 @@ BOX_ROW, SLAVED_ROW = 1, 2    # friction treatment of a contact LCP row (feeder_
 
 
 @numba.njit(**_JIT)
-def _world_point(pos, ang, body, local):
+def world_point(pos, ang, body, local):
     c, s = math.cos(ang[body]), math.sin(ang[body])
     return (pos[body, 0] + c * local[0] - s * local[1],
             pos[body, 1] + s * local[0] + c * local[1])
@@ -83,7 +83,7 @@ def _poses(t, t0, kind, index, pos0, ang0, vel0, om0, phi0, phi1, dr_u, dr_base,
 
 @numba.njit(**_JIT)
 def _vertex_piece_gap(pos, ang, vbody, local, pbody, start, end, verts, normals):
-    px, py = _world_point(pos, ang, vbody, local)
+    px, py = world_point(pos, ang, vbody, local)
     c, s = math.cos(ang[pbody]), math.sin(ang[pbody])
     best = -np.inf
     for j in range(start, end):
@@ -109,9 +109,9 @@ def candidate_gaps(pos, ang, cv_body, cv_local, cp_body, cp_start, cp_end, verts
 @numba.njit(**_JIT)
 def _contact_geometry(pos, ang, vel, om, a, b, vloc, q0loc, q1loc, nloc):
     """Edge parameter, tangential relative velocity, point and normal of one contact."""
-    px, py = _world_point(pos, ang, a, vloc)
-    q0x, q0y = _world_point(pos, ang, b, q0loc)
-    q1x, q1y = _world_point(pos, ang, b, q1loc)
+    px, py = world_point(pos, ang, a, vloc)
+    q0x, q0y = world_point(pos, ang, b, q0loc)
+    q1x, q1y = world_point(pos, ang, b, q1loc)
     cb, sb = math.cos(ang[b]), math.sin(ang[b])
     nx, ny = cb * nloc[0] - sb * nloc[1], sb * nloc[0] + cb * nloc[1]
     ex, ey = q1x - q0x, q1y - q0y
@@ -746,9 +746,9 @@ def held_geometry(pos, ang, c_a, c_b, vloc, q0loc, q1loc, nloc):
     param = np.empty(k)
     for i in range(k):
         a, b = c_a[i], c_b[i]
-        px, py = _world_point(pos, ang, a, vloc[i])
-        q0x, q0y = _world_point(pos, ang, b, q0loc[i])
-        q1x, q1y = _world_point(pos, ang, b, q1loc[i])
+        px, py = world_point(pos, ang, a, vloc[i])
+        q0x, q0y = world_point(pos, ang, b, q0loc[i])
+        q1x, q1y = world_point(pos, ang, b, q1loc[i])
         cb, sb = math.cos(ang[b]), math.sin(ang[b])
         nx, ny = cb * nloc[i, 0] - sb * nloc[i, 1], sb * nloc[i, 0] + cb * nloc[i, 1]
         ex, ey = q1x - q0x, q1y - q0y

@@ -106,6 +106,7 @@ import math
 import numba
 import numpy as np
 
+from feeder_sim._ed_kernels import world_point
 from feeder_sim.collision import Contacts
 from feeder_sim.dynamics import contact_set, SolverStats
 from feeder_sim.scene import SolverSpec
@@ -377,13 +378,6 @@ def _poses(t1, h, kind, drive_row, drives, gravity, pos, ang, vel, om, pos1, ang
 
 
 @numba.njit(**_JIT)
-def _corner(pos, ang, body, local):
-    c, s = math.cos(ang[body]), math.sin(ang[body])
-    return (pos[body, 0] + c * local[0] - s * local[1],
-            pos[body, 1] + s * local[0] + c * local[1])
-
-
-@numba.njit(**_JIT)
 def _piece_gap(px, py, pos, ang, body, start, end, verts, normals, internal):
     """Largest signed distance of a point from a piece's outer edge lines, and that edge."""
     c, s = math.cos(ang[body]), math.sin(ang[body])
@@ -435,7 +429,7 @@ def _resolve(t, pos, ang, vel, om, inv_mass, inv_inertia, cv_body, cv_local, cp_
     m = 0
     for c in range(nc):
         a, b = cv_body[c], cp_body[c]
-        px, py = _corner(pos, ang, a, cv_local[c])
+        px, py = world_point(pos, ang, a, cv_local[c])
         gap, face = _piece_gap(px, py, pos, ang, b, cp_start[c], cp_end[c], verts, normals,
                                internal)
         if face < 0 or gap > eps:
@@ -595,7 +589,7 @@ def _run(t, t_stop, pos, ang, vel, om, kind, drive_row, drives, drive_speed, gra
         h = _reach_step(h, speed + drive_speed, g, 0.25 * width, h_floor)
         for c in range(nc):
             a, b = cv_body[c], cp_body[c]
-            px, py = _corner(pos, ang, a, cv_local[c])
+            px, py = world_point(pos, ang, a, cv_local[c])
             gap, face = _piece_gap(px, py, pos, ang, b, cp_start[c], cp_end[c], verts, normals,
                                    internal)
             g0[c] = gap
@@ -612,7 +606,7 @@ def _run(t, t_stop, pos, ang, vel, om, kind, drive_row, drives, drive_speed, gra
             h_new = h
             ok = True
             for c in range(nc):
-                px, py = _corner(pos1, ang1, cv_body[c], cv_local[c])
+                px, py = world_point(pos1, ang1, cv_body[c], cv_local[c])
                 gh, face = _piece_gap(px, py, pos1, ang1, cp_body[c], cp_start[c], cp_end[c],
                                       verts, normals, internal)
                 if face >= 0 and gh < floor[c]:
@@ -639,7 +633,7 @@ def _run(t, t_stop, pos, ang, vel, om, kind, drive_row, drives, drive_speed, gra
         om[:] = om1
         counters[_C_STEPS] += 1
         for c in range(nc):
-            px, py = _corner(pos, ang, cv_body[c], cv_local[c])
+            px, py = world_point(pos, ang, cv_body[c], cv_local[c])
             gap, face = _piece_gap(px, py, pos, ang, cp_body[c], cp_start[c], cp_end[c],
                                    verts, normals, internal)
             if face >= 0 and -gap > fout[_F_MAX_PEN]:

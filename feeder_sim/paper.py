@@ -93,6 +93,15 @@ def _plt():
     return plt
 
 
+def _label_track_axes(ax, ramp_deg: int) -> None:
+    """Titles and labels of a position-along-the-track panel, as in the paper's figures."""
+    ax.set_title(f'Comparison of parts feeding speed ({ramp_deg}° ramp)')
+    ax.set_xlabel('time [s]')
+    ax.set_ylabel('position along the track [mm]')
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+
+
 def figure7(out: Path, duration_s: float = 1.0) -> dict:
     """Fig. 7: with and without the friction impulse, 0 and 3 degree ramps."""
     plt = _plt()
@@ -107,11 +116,7 @@ def figure7(out: Path, duration_s: float = 1.0) -> dict:
             label = 'with' if friction_impulse else 'without'
             ax.plot(run['t_s'], 1e3 * np.asarray(run['position_m']), style,
                     label=f'{label} tangent impulse')
-        ax.set_title(f'Comparison of parts feeding speed ({ramp}° ramp)')
-        ax.set_xlabel('time [s]')
-        ax.set_ylabel('position along the track [mm]')
-        ax.grid(True, alpha=0.3)
-        ax.legend()
+        _label_track_axes(ax, ramp)
     fig.suptitle('Fig. 7: feeding with and without the friction impulse (16 Hz)')
     fig.tight_layout()
     fig.savefig(out / 'fig7_friction_impulse.png')
@@ -183,11 +188,7 @@ def figure8(out: Path, duration_s: float = 1.0) -> dict:
             data[f'{name}/{method}'] = run
             ax.plot(run['t_s'], 1e3 * np.asarray(run['position_m']), style,
                     label=f"{method} ({1e3 * run['steady_speed_mps']:.1f} mm/s steady)")
-        ax.set_title(f'Comparison of parts feeding speed ({ramp}° ramp)')
-        ax.set_xlabel('time [s]')
-        ax.set_ylabel('position along the track [mm]')
-        ax.grid(True, alpha=0.3)
-        ax.legend(fontsize=8)
+        _label_track_axes(ax, ramp)
     fig.suptitle('Fig. 8: simultaneous frictional LCP (this method) vs impulse-based method')
     fig.tight_layout()
     fig.savefig(out / 'fig8_methods.png')

@@ -184,7 +184,7 @@ def test_vibration_command_starts_and_stops_feeding(graph, resting_scene):
 def test_pause_step_and_reset(graph):
     poses = graph.listen(PoseArray, '/feeder_sim/part_poses')
     node = graph.start(real_time_factor=0.0, steps_per_call=3, publish_rate=200.0)
-    graph.spin_until(lambda: node.sim.t > 0.05)
+    graph.spin_until(lambda: len(poses) >= 5)         # the probe is matched
     assert graph.call(SetBool, '/feeder_sim/pause', SetBool.Request(data=True)).success
     t_paused = node.sim.t
     graph.spin_for(0.3)
