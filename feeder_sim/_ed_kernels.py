@@ -126,6 +126,26 @@ def _contact_geometry(pos, ang, vel, om, a, b, vloc, q0loc, q1loc, nloc):
 
 
 @numba.njit(**_JIT)
+def _force_events(f, k, mu_s, group, n_groups, force_scale, g):
+    """The first event functions of a held mode: each normal force (must stay >= 0), then each
+    sticking group's friction-cone margin; returns the next free index of ``g``."""
+    j = 0
+    for i in range(k):
+        g[j] = f[i] / force_scale
+        j += 1
+    sum_n = np.zeros(n_groups)
+    sum_t = np.zeros(n_groups)
+    for i in range(k):
+        if group[i] >= 0:
+            sum_n[group[i]] += f[i] * mu_s[i]
+            sum_t[group[i]] += f[k + i]
+    for q in range(n_groups):
+        g[j] = (sum_n[q] - abs(sum_t[q])) / force_scale
+        j += 1
+    return j
+
+
+@numba.njit(**_JIT)
 def _events(t, t0, bodies, drives, contacts, cands, verts, normals, scales, pos, ang, vel, om,
             acc_drive, dvel_drive, g):
     kind, index, pos0, ang0, vel0, om0, phi0, phi1 = bodies
@@ -144,19 +164,7 @@ def _events(t, t0, bodies, drives, contacts, cands, verts, normals, scales, pos,
         for d in range(nd):
             v += f1[r, d] * acc_drive[d]
         f[r] = v
-    j = 0
-    for i in range(k):
-        g[j] = f[i] / force_scale
-        j += 1
-    sum_n = np.zeros(n_groups)
-    sum_t = np.zeros(n_groups)
-    for i in range(k):
-        if group[i] >= 0:
-            sum_n[group[i]] += f[i] * mu_s[i]
-            sum_t[group[i]] += f[k + i]
-    for q in range(n_groups):
-        g[j] = (sum_n[q] - abs(sum_t[q])) / force_scale
-        j += 1
+    j = _force_events(f, k, mu_s, group, n_groups, force_scale, g)
     params = np.empty(k)
     for i in range(k):
         param, v_t, _, _, _, _, _ = _contact_geometry(pos, ang, vel, om, c_a[i], c_b[i],
@@ -666,19 +674,7 @@ def _mode_rhs(t, y, spec, pos, ang, vel, om, acc, dydt, g, f):
             dydt[3 * nd + 2 * q] += dv[3 * q]
             dydt[3 * nd + 2 * q + 1] += dv[3 * q + 1]
             dydt[5 * nd + q] += dv[3 * q + 2]
-    j = 0
-    for i in range(k):
-        g[j] = f[i] / force_scale
-        j += 1
-    sum_n = np.zeros(n_groups)
-    sum_t = np.zeros(n_groups)
-    for i in range(k):
-        if group[i] >= 0:
-            sum_n[group[i]] += f[i] * mu_s[i]
-            sum_t[group[i]] += f[k + i]
-    for q in range(n_groups):
-        g[j] = (sum_n[q] - abs(sum_t[q])) / force_scale
-        j += 1
+    j = _force_events(f, k, mu_s, group, n_groups, force_scale, g)
     for i in range(k):
         if friction[i] == SLIDE:
             g[j] = sigma[i] * v_t[i] / speed_scale

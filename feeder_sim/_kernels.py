@@ -583,6 +583,18 @@ def _pgs_records(a, b, ja, jb, ma, mb, step, diag, b_n, b_t, mu_lo, mu_hi, inv_m
     return R, fixed_a, fixed_b
 
 
+@numba.njit(inline='always', **_INNER)
+def _push(dv, R, k, ia, ib, col, d):
+    """Add the velocity change of an impulse change ``d`` on row ``k`` to both its bodies
+    (``R[k, col:col + 6]`` hold M^-1 J^T for body a, then body b)."""
+    dv[ia, 0] += R[k, col] * d
+    dv[ia, 1] += R[k, col + 1] * d
+    dv[ia, 2] += R[k, col + 2] * d
+    dv[ib, 0] += R[k, col + 3] * d
+    dv[ib, 1] += R[k, col + 4] * d
+    dv[ib, 2] += R[k, col + 5] * d
+
+
 @numba.njit(**_INNER)
 def _pgs_island(lo_c, hi_c, a, b, R, fixed_a, fixed_b, dv, box, x_n, x_t, sweeps):
     """``sweeps`` projected Gauss-Seidel sweeps over contacts lo_c..hi_c-1 in order, each
@@ -616,12 +628,7 @@ def _pgs_island(lo_c, hi_c, a, b, R, fixed_a, fixed_b, dv, box, x_n, x_t, sweeps
             d = xn - xo
             if d != 0.0:
                 change = max(change, abs(d) * R[k, _R_DN])
-                dv[ia, 0] += R[k, 6] * d
-                dv[ia, 1] += R[k, 7] * d
-                dv[ia, 2] += R[k, 8] * d
-                dv[ib, 0] += R[k, 9] * d
-                dv[ib, 1] += R[k, 10] * d
-                dv[ib, 2] += R[k, 11] * d
+                _push(dv, R, k, ia, ib, 6, d)
                 x_n[k] = xn
             # (xn now equals x_n[k] bit for bit: x_n never holds -0.0)
             if xn == 0.0:
@@ -629,12 +636,7 @@ def _pgs_island(lo_c, hi_c, a, b, R, fixed_a, fixed_b, dv, box, x_n, x_t, sweeps
                 d = -x_t[k]
                 if d != 0.0:
                     change = max(change, abs(d) * R[k, _R_DT])
-                    dv[ia, 0] += R[k, 18] * d
-                    dv[ia, 1] += R[k, 19] * d
-                    dv[ia, 2] += R[k, 20] * d
-                    dv[ib, 0] += R[k, 21] * d
-                    dv[ib, 1] += R[k, 22] * d
-                    dv[ib, 2] += R[k, 23] * d
+                    _push(dv, R, k, ia, ib, 18, d)
                     x_t[k] = 0.0
             elif box[k]:
                 w = R[k, _R_BT]
@@ -648,12 +650,7 @@ def _pgs_island(lo_c, hi_c, a, b, R, fixed_a, fixed_b, dv, box, x_n, x_t, sweeps
                 d = xt - xo
                 if d != 0.0:
                     change = max(change, abs(d) * R[k, _R_DT])
-                    dv[ia, 0] += R[k, 18] * d
-                    dv[ia, 1] += R[k, 19] * d
-                    dv[ia, 2] += R[k, 20] * d
-                    dv[ib, 0] += R[k, 21] * d
-                    dv[ib, 1] += R[k, 22] * d
-                    dv[ib, 2] += R[k, 23] * d
+                    _push(dv, R, k, ia, ib, 18, d)
                     x_t[k] = xt
     return change
 
