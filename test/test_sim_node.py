@@ -83,9 +83,13 @@ class Graph:
         while time.monotonic() < end:
             self.executor.spin_once(timeout_sec=0.01)
 
-    def call(self, srv_type, name: str, request):
+    def client(self, srv_type, name: str):
         client = self.probe.create_client(srv_type, name)
         assert client.wait_for_service(timeout_sec=10.0), name
+        return client
+
+    def call(self, srv_type, name: str, request, client=None):
+        client = client or self.client(srv_type, name)
         future = client.call_async(request)
         self.spin_until(future.done)
         return future.result()
@@ -429,6 +433,9 @@ def test_a_command_flood_does_not_stall_the_simulation(graph):
     t0, w0 = node.sim.t, time.monotonic()
     graph.spin_for(1.5)
     calm_rate = (node.sim.t - t0) / (time.monotonic() - w0)
+    # Matched before the flood: what is measured is how fast a known service answers,
+    # not how fast a new endpoint is discovered on a saturated two-core machine.
+    pause = graph.client(SetBool, '/feeder_sim/pause')
 
     flood = subprocess.Popen([sys.executable, '-c', FLOOD, '4'], stdout=subprocess.PIPE,
                              text=True)
@@ -439,7 +446,8 @@ def test_a_command_flood_does_not_stall_the_simulation(graph):
         graph.spin_for(1.5)
         flood_rate = (node.sim.t - t0) / (time.monotonic() - w0)
         start = time.monotonic()
-        assert graph.call(SetBool, '/feeder_sim/pause', SetBool.Request(data=False)).success
+        assert graph.call(SetBool, '/feeder_sim/pause', SetBool.Request(data=False),
+                          client=pause).success
         service_latency = time.monotonic() - start
         sent_per_s = float(flood.communicate(timeout=30)[0].strip())
     finally:
