@@ -109,7 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser('paper', help="regenerate the paper's figures (PNG + JSON)")
     p.add_argument('--out', default='out/paper', help='output folder (default out/paper)')
-    p.add_argument('--only', metavar='FIGS', help='comma-separated subset of fig7,flip,fig8')
+    p.add_argument('--only', metavar='FIGS', help='comma-separated subset of fig7,flip,fig8,fig10')
     p.set_defaults(func=_paper)
 
     p = sub.add_parser('scenes', help='list the shipped scenes')

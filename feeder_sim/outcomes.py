@@ -1,10 +1,11 @@
 """Outcome measures a feeder designer reads directly: feed rate, exit orientation, jams.
 
-Fed frame by frame with each part's position along the track (m) and its angle relative to
-the track (rad). A part *exits* the first time its position reaches the scene's
-``outcomes.exit_position``; its angle then is its exit orientation. A part that has not exited
-and moved less than ``jam_distance`` along the track over the last ``jam_time`` is *jammed*
-(reported once, at the first frame the condition holds).
+Fed frame by frame with each part's progress towards the exit (m, see ``OutcomeSpec``), its
+centre of mass (m, world) and its angle relative to the track (rad). A part *exits* the first
+time its progress reaches the scene's ``outcomes.exit_position``; its angle then is its exit
+orientation, named after the nearest of the scene's ``orientations``. A part that has not
+exited and whose centre of mass moved less than ``jam_distance`` over the last ``jam_time`` is
+*jammed* (reported once, at the first frame the condition holds).
 """
 
 from __future__ import annotations
@@ -17,14 +18,28 @@ import numpy as np
 
 from feeder_sim.scene import OutcomeSpec
 
+OTHER = 'other'   # an exit orientation farther than the tolerance from every named one
+
 
 @dataclass
 class PartOutcome:
     name: str
     exit_time_s: float | None = None
     exit_angle_rad: float | None = None   # relative to the track, in (-pi, pi]
+    exit_orientation: str | None = None   # the nearest named orientation, or 'other'
     jam_time_s: float | None = None       # first time the part was found jammed
-    jam_position_m: float | None = None
+    jam_position_m: list[float] | None = None   # its centre of mass then (world)
+
+
+def classify(angle_rad: float, spec: OutcomeSpec) -> str | None:
+    """The name of the orientation nearest to ``angle_rad`` within the tolerance, ``'other'``
+    when none is near enough, None when the scene names no orientations."""
+    if not spec.orientations:
+        return None
+    name, angle = min(spec.orientations,
+                      key=lambda item: abs(math.remainder(angle_rad - item[1], 2 * math.pi)))
+    off = abs(math.remainder(angle_rad - angle, 2 * math.pi))
+    return name if off <= spec.orientation_tolerance else OTHER
 
 
 @dataclass
@@ -40,41 +55,60 @@ class OutcomeTracker:
         self.parts = [PartOutcome(n) for n in self.names]
         self._history = deque()
 
-    def update(self, t_s: float, position_m: np.ndarray, angle_rad: np.ndarray) -> None:
-        """One frame: simulated time, along-track positions and angles to the track."""
+    def update(self, t_s: float, progress_m: np.ndarray, position_m: np.ndarray,
+               angle_rad: np.ndarray) -> None:
+        """One frame: simulated time, progress towards the exit, centres of mass (n, 2) and
+        angles to the track."""
         if self._t0 is None:
             self._t0 = t_s
         self._t = t_s
         exit_at = self.spec.exit_position
-        for part, s, a in zip(self.parts, position_m, angle_rad):
+        for part, s, a in zip(self.parts, progress_m, angle_rad):
             if part.exit_time_s is None and exit_at is not None and s >= exit_at:
                 part.exit_time_s = float(t_s)
                 part.exit_angle_rad = float(math.remainder(a, 2.0 * math.pi))
-        self._history.append((t_s, np.array(position_m, dtype=float)))
+                part.exit_orientation = classify(part.exit_angle_rad, self.spec)
+        position = np.array(position_m, dtype=float).reshape(-1, 2)
+        self._history.append((t_s, position))
         # Keep just enough history to look back one jam_time.
         while len(self._history) > 1 and self._history[1][0] <= t_s - self.spec.jam_time:
             self._history.popleft()
-        t_old, s_old = self._history[0]
+        t_old, p_old = self._history[0]
         if t_s - t_old < self.spec.jam_time - 1e-12:
             return
-        moved = np.abs(np.asarray(position_m) - s_old)
-        for part, dist, s in zip(self.parts, moved, position_m):
+        moved = np.hypot(*(position - p_old).T)
+        for part, dist, p in zip(self.parts, moved, position):
             if part.exit_time_s is None and part.jam_time_s is None and \
                     dist < self.spec.jam_distance:
                 part.jam_time_s = float(t_s)
-                part.jam_position_m = float(s)
+                part.jam_position_m = [float(p[0]), float(p[1])]
 
     def summary(self) -> dict:
         """Counts, feed rate (parts per minute over the run), orientations and jams."""
         span = (self._t - self._t0) if self._t0 is not None else 0.0
         exited = [p for p in self.parts if p.exit_time_s is not None]
         jammed = [p for p in self.parts if p.jam_time_s is not None]
+        counts: dict[str, int] = {}
+        if self.spec.orientations:
+            counts = {name: 0 for name, _ in self.spec.orientations} | {OTHER: 0}
+            for p in exited:
+                counts[p.exit_orientation] += 1
         return {
             'exit_position_m': self.spec.exit_position,
+            'exit_axis': None if self.spec.exit_axis is None else list(self.spec.exit_axis),
             'jam_time_s': self.spec.jam_time,
             'jam_distance_m': self.spec.jam_distance,
             'parts_exited': len(exited),
             'feed_rate_parts_per_min': 60.0 * len(exited) / span if span > 0 else 0.0,
+            'exit_orientations': counts,
             'jams': len(jammed),
             'parts': [vars(p).copy() for p in self.parts],
         }
+
+
+def progress(sim, spec: OutcomeSpec) -> tuple[np.ndarray, np.ndarray]:
+    """Each part's progress towards the exit (m) and centre of mass (n, 2) in ``sim``."""
+    com = sim.state.position[sim.part_indices]
+    if spec.exit_axis is None:
+        return sim.track_coordinates()[0], com
+    return com @ np.asarray(spec.exit_axis), com

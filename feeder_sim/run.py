@@ -17,7 +17,7 @@ import time
 import numpy as np
 
 from feeder_sim import __version__
-from feeder_sim.outcomes import OutcomeTracker
+from feeder_sim.outcomes import OutcomeTracker, progress
 from feeder_sim.scene import scene_to_dict
 from feeder_sim.simulator import ContactReport, Simulator
 
@@ -124,7 +124,7 @@ def run(sim: Simulator, duration_s: float, *, publish_rate_hz: float = 100.0,
             sim.advance(t0 + min(k * period, duration_s))
             frame = Frame.take(sim)
             traj.t.append(sim.t), traj.s.append(frame.s), traj.speed.append(frame.speed)
-            outcomes.update(sim.t, frame.s, frame.angle - track_angle)
+            outcomes.update(sim.t, *progress(sim, outcomes.spec), frame.angle - track_angle)
             if recorder is not None:
                 record_frame(recorder, frame)
             if on_frame is not None:

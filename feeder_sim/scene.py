@@ -169,13 +169,24 @@ class BodySpec(_ArrayFieldsEq):
 
 @dataclass(frozen=True)
 class OutcomeSpec:
-    """What a designer reads off a run: parts leaving at ``exit_position`` (m along the track;
-    None: no exit) and jams, a part that moves less than ``jam_distance`` (m) along the track
-    during ``jam_time`` (s) before it has left."""
+    """What a designer reads off a run.
+
+    A part *exits* when its centre of mass reaches ``exit_position`` (m; None: no exit),
+    measured along the track's x axis from the track's origin, or, when ``exit_axis`` (a world
+    direction [x, y]) is given, along that direction from the world origin (an orienter's exit
+    chute points down: ``[0, -1]``). Its angle relative to the track then is its exit
+    orientation, named after the nearest entry of ``orientations`` (name -> angle in rad)
+    within ``orientation_tolerance`` (rad), else ``other``. A part that has not exited and
+    whose centre of mass moved less than ``jam_distance`` (m) during ``jam_time`` (s) is
+    *jammed*.
+    """
 
     exit_position: float | None = None
     jam_time: float = 1.0
     jam_distance: float = 1e-3
+    exit_axis: tuple[float, float] | None = None
+    orientations: tuple[tuple[str, float], ...] = ()
+    orientation_tolerance: float = 0.35
 
 
 @dataclass(frozen=True, eq=False)
@@ -595,7 +606,34 @@ _OUTCOMES = {
     'jam_time': _Field(_num(0.0, lo_open=True, unit='s'), 'a time in s', OutcomeSpec.jam_time),
     'jam_distance': _Field(_num(0.0, lo_open=True, unit='m'), 'a distance in m',
                            OutcomeSpec.jam_distance),
+    'exit_axis': _Field(lambda v, p: None if v is None else _direction(v, p),
+                        'a world direction [x, y]', None, nullable=True),
+    'orientations': _Field(lambda v, p: _orientations(v, p),
+                           'a mapping of orientation names to angles (rad)', (), nullable=True),
+    'orientation_tolerance': _Field(_num(0.0, math.pi, lo_open=True, unit='rad'),
+                                    'an angle in rad', OutcomeSpec.orientation_tolerance),
 }
+
+
+def _direction(value, path: str) -> tuple[float, float]:
+    v = _vec(value, path, 2, '[x, y]')
+    norm = math.hypot(*v)
+    if norm == 0.0:
+        raise _Invalid(path, 'expected a non-zero direction, for example [0.0, -1.0] for down')
+    return (float(v[0] / norm), float(v[1] / norm))
+
+
+def _orientations(value, path: str) -> tuple[tuple[str, float], ...]:
+    if value is None:
+        return ()
+    if not isinstance(value, Mapping):
+        raise _Invalid(path, 'expected a mapping of names to angles in rad, for example '
+                             f'{{open_end_up: 1.5708}}; got {_describe(value)}')
+    out = []
+    for key, angle in value.items():
+        sub = _join(path, str(key))
+        out.append((_string(key, sub), _number(angle, sub, unit='rad')))
+    return tuple(out)
 
 
 def _outcomes(value, path: str) -> OutcomeSpec:
@@ -807,5 +845,12 @@ def scene_to_dict(scene: Scene) -> dict:
                    'tolerance': float(s.tolerance),
                    'restitution_law': s.restitution_law},
         'bodies': bodies,
-        'outcomes': {f.name: getattr(scene.outcomes, f.name) for f in fields(OutcomeSpec)},
+        'outcomes': _outcomes_dict(scene.outcomes),
     }
+
+
+def _outcomes_dict(spec: OutcomeSpec) -> dict:
+    out = {f.name: getattr(spec, f.name) for f in fields(OutcomeSpec)}
+    out['exit_axis'] = None if spec.exit_axis is None else list(spec.exit_axis)
+    out['orientations'] = {name: angle for name, angle in spec.orientations}
+    return out

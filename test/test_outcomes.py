@@ -18,7 +18,8 @@ def test_tracker_on_prescribed_motion():
                                                      jam_distance=1e-3))
     for k in range(201):
         t = k * 0.01
-        tracker.update(t, np.array([t, 0.2]), np.array([0.1, 3.0]))
+        tracker.update(t, np.array([t, 0.2]), np.array([[t, 0.0], [0.2, 0.0]]),
+                       np.array([0.1, 3.0]))
     out = tracker.summary()
     a, b = out['parts']
     assert a['exit_time_s'] == pytest.approx(1.0) and a['exit_angle_rad'] == pytest.approx(0.1)
@@ -26,6 +27,36 @@ def test_tracker_on_prescribed_motion():
     assert b['exit_time_s'] is None and b['jam_time_s'] == pytest.approx(0.5)
     assert out['parts_exited'] == 1 and out['jams'] == 1
     assert out['feed_rate_parts_per_min'] == pytest.approx(60.0 / 2.0)
+
+
+def test_exit_orientation_is_named_after_the_nearest_one_within_the_tolerance():
+    spec = OutcomeSpec(exit_position=0.0, exit_axis=(0.0, -1.0), orientation_tolerance=0.3,
+                       orientations=(('open_end_up', np.pi / 2), ('open_end_down', -np.pi / 2)))
+    tracker = OutcomeTracker(('a', 'b', 'c', 'd'), spec)
+    # progress along [0, -1] is minus the height: every part is at or below the exit
+    tracker.update(0.0, np.zeros(4), np.zeros((4, 2)),
+                   np.array([np.pi / 2 + 0.29, -np.pi / 2 - 0.1, 3 * np.pi / 2, 0.0]))
+    out = tracker.summary()
+    assert [p['exit_orientation'] for p in out['parts']] == \
+        ['open_end_up', 'open_end_down', 'open_end_down', 'other']
+    assert out['exit_orientations'] == {'open_end_up': 1, 'open_end_down': 2, 'other': 1}
+
+
+def test_outcome_settings_are_checked_and_written_back():
+    from feeder_sim.scene import parse_scene, scene_to_dict, SceneError
+    base = scene_to_dict(load_scene('track_one_box'))
+    base['outcomes'] = {'exit_position': 0.05, 'exit_axis': [0.0, -2.0],
+                        'orientations': {'flat': 0.0, 'on_edge': 1.5708}}
+    scene = parse_scene(base)
+    assert scene.outcomes.exit_axis == (0.0, -1.0)
+    assert scene.outcomes.orientations == (('flat', 0.0), ('on_edge', 1.5708))
+    assert parse_scene(scene_to_dict(scene)).outcomes == scene.outcomes
+    for bad, where in (({'exit_axis': [0.0, 0.0]}, 'outcomes.exit_axis'),
+                       ({'orientations': [0.0]}, 'outcomes.orientations'),
+                       ({'orientations': {'up': 'north'}}, 'outcomes.orientations.up'),
+                       ({'orientation_tolerance': 4.0}, 'outcomes.orientation_tolerance')):
+        with pytest.raises(SceneError, match=where.replace('.', r'\.')):
+            parse_scene({**base, 'outcomes': bad})
 
 
 def test_feeding_part_exits_and_a_resting_one_jams(tmp_path):
