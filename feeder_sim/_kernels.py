@@ -354,8 +354,8 @@ def speed_bounds(velocity, omega, radius, dynamic):
 
 @numba.njit(**_JIT)
 def contact_rows(a, b, point, normal, gap, order, starts, position, v_end, w_end, v_pre, w_pre,
-                 mu_s_body, mu_d_body, e_body, h, touch, max_rows, push_out, slop, collide_speed,
-                 slip_tol, friction_impulse):
+                 mu_s_body, mu_d_body, e_body, h, touch, max_rows, push_out, push_max, slop,
+                 collide_speed, slip_tol, friction_impulse):
     """The per-contact part of ``TimeStepper._contacts`` in one pass (the numpy expressions it
     replaces are quoted; same operations in the same order, so the same bits).
 
@@ -447,7 +447,8 @@ def contact_rows(a, b, point, normal, gap, order, starts, position, v_end, w_end
         touching = g <= touch
         # colliding = (touching | ~pile) & (v_n_pre < -2 g h)
         colliding[q] = (touching or not pl) and vn_pre < collide_speed
-        # newton = v_n_free + e min(v_n_pre, 0); push = push_out max(-gap - slop, 0) 2 / h.
+        # newton = v_n_free + e min(v_n_pre, 0);
+        # push = min(push_out max(-gap - slop, 0) 2 / h, push_max).
         # np.minimum / np.maximum return the second operand on a tie (the sign of a zero) and
         # propagate NaN; numba's min / max return the first, hence the explicit forms.
         newton = vn_free[i] + rest[q] * (vn_pre if vn_pre < 0.0 or vn_pre != vn_pre else 0.0)
@@ -456,7 +457,8 @@ def contact_rows(a, b, point, normal, gap, order, starts, position, v_end, w_end
         elif touching:
             depth = -g - slop
             depth = depth if depth > 0.0 or depth != depth else 0.0
-            b_n[q] = newton - push_out * depth * 2.0 / h
+            push = push_out * depth * 2.0 / h
+            b_n[q] = newton - (push if push < push_max or push != push else push_max)
         else:
             b_n[q] = vn_free[i] + 2.0 * g / h
         # friction_rows (Kawachi): the pre-step slip picks static or one-sided dynamic

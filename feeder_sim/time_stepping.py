@@ -97,6 +97,9 @@ class TimeStepSettings:
     projection_slop_m: float = 1e-9  # penetration left by the projection (small islands)
     slop_m: float = 1e-7           # penetration tolerated before push-out (piles)
     push_out: float = 0.2          # fraction of that penetration removed per step (piles)
+    push_max_mps: float = 0.02     # cap on the push-out speed (piles): it stays in the
+    #                                velocities, so uncapped a deep wedge (1/h times its depth)
+    #                                throws parts apart
     slip_tol_mps: float = 1e-9     # |v_T| below which a contact is sticking
     lcp_tol: float = 1e-9          # lcp.residual the Dantzig path must reach
     direct_max_rows: int = 48      # islands with more LCP rows go to projected Gauss-Seidel
@@ -473,8 +476,8 @@ class TimeStepper:
         return K.contact_rows(
             c.body_a, c.body_b, c.point, c.normal, c.gap, groups[0], groups[1], mid.position,
             end.velocity, end.omega, state.velocity, state.omega, w.mu_static, w.mu_dynamic,
-            w.restitution, h, st.touch_m, st.direct_max_rows, st.push_out, st.slop_m,
-            -2.0 * self._g * h, slip_tol, bool(self.spec.friction_impulse))
+            w.restitution, h, st.touch_m, st.direct_max_rows, st.push_out, st.push_max_mps,
+            st.slop_m, -2.0 * self._g * h, slip_tol, bool(self.spec.friction_impulse))
 
     def _contact_rows_reference(self, contacts, groups: tuple, state: State, mid: State,
                                 end: State, h: float, slip_tol: float) -> tuple:
@@ -502,7 +505,8 @@ class TimeStepper:
         touching = gap <= st.touch_m
         colliding = (touching | ~pile) & (v_n_pre < -2.0 * self._g * h)
         newton = v_n_free + cs.restitution * np.minimum(v_n_pre, 0.0)
-        push = st.push_out * np.maximum(-gap - st.slop_m, 0.0) * 2.0 / h
+        push = np.minimum(st.push_out * np.maximum(-gap - st.slop_m, 0.0) * 2.0 / h,
+                          st.push_max_mps)
         b_n = np.where(~pile, newton,
                        np.where(touching, newton - push, v_n_free + 2.0 * gap / h))
         friction, mu_lo, mu_hi = friction_rows(cs, v_t_pre, colliding,
