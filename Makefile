@@ -37,6 +37,7 @@ bench: $(STAMP)
 	$(PY) benchmarks/conveying.py
 	$(PY) benchmarks/pile.py
 	$(PY) benchmarks/node.py
+	$(PY) benchmarks/methods.py
 
 clean:
 	rm -rf $(VENV) out build install log *.egg-info
