@@ -98,6 +98,14 @@ def _plt():
     return plt
 
 
+def _save(fig, path: Path, title: str, **title_kw) -> None:
+    """Title, lay out, write and release a figure."""
+    fig.suptitle(title, **title_kw)
+    fig.tight_layout()
+    fig.savefig(path)
+    _plt().close(fig)
+
+
 def _label_track_axes(ax, ramp_deg: int) -> None:
     """Titles and labels of a position-along-the-track panel, as in the paper's figures."""
     ax.set_title(f'Comparison of parts feeding speed ({ramp_deg}° ramp)')
@@ -122,10 +130,8 @@ def figure7(out: Path, duration_s: float = 1.0) -> dict:
             ax.plot(run['t_s'], 1e3 * np.asarray(run['position_m']), style,
                     label=f'{label} tangent impulse')
         _label_track_axes(ax, ramp)
-    fig.suptitle('Fig. 7: feeding with and without the friction impulse (16 Hz)')
-    fig.tight_layout()
-    fig.savefig(out / 'fig7_friction_impulse.png')
-    plt.close(fig)
+    _save(fig, out / 'fig7_friction_impulse.png',
+          'Fig. 7: feeding with and without the friction impulse (16 Hz)')
     return data
 
 
@@ -163,10 +169,8 @@ def flip(out: Path, gammas: Iterable[float] = np.round(np.arange(1.6, 3.01, 0.1)
     axes[0].set_title('point mass (analytic)')
     axes[1].set_ylabel('position after 1 s [mm]')
     axes[1].set_title('the part (event-driven)')
-    fig.suptitle('3° ramp, 16 Hz, drive 60°, μ = 0.3: where the friction impulse decides')
-    fig.tight_layout()
-    fig.savefig(out / 'flip_friction_impulse.png')
-    plt.close(fig)
+    _save(fig, out / 'flip_friction_impulse.png',
+          '3° ramp, 16 Hz, drive 60°, μ = 0.3: where the friction impulse decides')
     return {'rows': rows, 'shipped_gamma': shipped,
             'flips_between': _flip_interval(rows)}
 
@@ -194,10 +198,8 @@ def figure8(out: Path, duration_s: float = 1.0) -> dict:
             ax.plot(run['t_s'], 1e3 * np.asarray(run['position_m']), style,
                     label=f"{method} ({1e3 * run['steady_speed_mps']:.1f} mm/s steady)")
         _label_track_axes(ax, ramp)
-    fig.suptitle('Fig. 8: simultaneous frictional LCP (this method) vs impulse-based method')
-    fig.tight_layout()
-    fig.savefig(out / 'fig8_methods.png')
-    plt.close(fig)
+    _save(fig, out / 'fig8_methods.png',
+          'Fig. 8: simultaneous frictional LCP (this method) vs impulse-based method')
     return data
 
 
@@ -273,11 +275,9 @@ def figure10(out: Path, duration_s: float = 4.5) -> dict:
                            o['exit_orientations'].items() if v)
         row[0].set_ylabel(f'{name}\n{o["parts_exited"]}/{len(o["parts"])} out '
                           f'({counts or "none"}){jam}', fontsize=8)
-    fig.suptitle('Fig. 10: cups oriented by a hook (blue: arriving open end first, orange: '
-                 'closed end first; green: exit line)', fontsize=10)
-    fig.tight_layout()
-    fig.savefig(out / 'fig10_hook_orienter.png')
-    plt.close(fig)
+    _save(fig, out / 'fig10_hook_orienter.png',
+          'Fig. 10: cups oriented by a hook (blue: arriving open end first, orange: '
+          'closed end first; green: exit line)', fontsize=10)
     return data
 
 
