@@ -183,6 +183,7 @@ class SolverStats:
     impacts: int = 0
     events: int = 0
     energy_fixes: int = 0
+    cascades: int = 0          # event cascades stepped past (event driven)
     islands: int = 0           # islands with contacts, summed over steps (time stepping)
     pgs_solves: int = 0        # LCPs answered by the large-island projected Gauss-Seidel
     max_pgs_velocity_residual_mps: float = 0.0   # worst PGS answer, m/s (see _kernels)

@@ -77,6 +77,7 @@ assert (BOX, SLAVED) == (kern.BOX_ROW, kern.SLAVED_ROW)
 # Event functions are scaled to O(1); one fires when it drops below -_EVENT_THRESHOLD, so a
 # function that starts a phase at zero (a contact that just separated) does not fire on noise.
 _EVENT_THRESHOLD = 1e-9
+_GIVE_WAY_S = 1e-9            # first step past an event cascade (s)
 _GAP_SCALE_M = 1e-3   # gaps fire at -1e-12 m
 # A body counts as not turning when its rotation moves its points by less than this fraction of
 # the slip tolerance (impacts on a flat leave ~1e-16 m/s of round-off spin) and the held mode
@@ -108,6 +109,8 @@ class EventSettings:
     rest_speed_mps: float = 1e-4  # impacts slower than this are plastic (no Zeno bouncing)
     lcp_tol: float = 1e-9
     max_events_at_one_time: int = 50
+    cascade_window_s: float = 1e-6   # events closer than this in time count as one cascade
+    max_give_way_s: float = 1e-5     # longest step taken past a persisting cascade
 
 
 @dataclass
@@ -233,6 +236,12 @@ class EventDriven:
         self._force_scale = float(np.max(world.mass[dyn] * g, initial=1.0))
         self._speed = speed
         self._length = length
+        # A slip event fires once sigma v_T / speed is below -_EVENT_THRESHOLD, i.e. with the
+        # slip already reversed by up to _EVENT_THRESHOLD * speed. Below that speed a contact
+        # must count as not sliding, or a part too large for the default (metre-sized:
+        # speed ~ 3 m/s) is seen sliding back at every reversal, and the mode flips between
+        # the two directions every nanosecond without ever testing for sticking.
+        self._slip_tol = max(self.settings.slip_tol_mps, 2.0 * _EVENT_THRESHOLD * speed)
         self._mode: _Mode | None = None
         self._h = spec.time_step
         self._pending: list[StepContacts] = []
@@ -419,6 +428,7 @@ class EventDriven:
         """Integrate ``state`` in place to ``t_end``; returns the contact impulses transmitted."""
         scratch = state.copy()
         events_here, last_event_t = 0, -math.inf
+        give_way_s = _GIVE_WAY_S
         while state.t < t_end - 1e-15:
             if self._mode is None:
                 self._settle(state)
@@ -432,12 +442,18 @@ class EventDriven:
             if hit:
                 self._mode = None
                 self.stats.events += 1
-                events_here = events_here + 1 if state.t - last_event_t < 1e-12 else 0
+                dense = state.t - last_event_t < self.settings.cascade_window_s
+                events_here = events_here + 1 if dense else 0
                 last_event_t = state.t
                 if events_here > self.settings.max_events_at_one_time:
-                    self._give_way(state, scratch)
+                    # A cascade: events at one instant, or a mode that chatters between two
+                    # choices every few nanoseconds (a contact at its friction bound touched by
+                    # a corner). Step past it, twice as far each time it persists.
+                    self._give_way(state, scratch, give_way_s)
+                    give_way_s = min(2.0 * give_way_s, self.settings.max_give_way_s)
                     events_here = 0
                 continue
+            give_way_s = _GIVE_WAY_S
             if state.t >= t_stop - 1e-15 and t_stop < t_end:
                 self._mode = None   # the drive's acceleration has a kink here
         out, self._pending = self._pending, []
@@ -511,15 +527,19 @@ class EventDriven:
                 side = 1
         return best
 
-    def _give_way(self, state: State, scratch: State) -> None:
-        """Many events at one instant: let the mode run a tiny step to break the tie."""
-        self.stats.messages.append(f'event cascade at t={state.t:.9f}s; stepped past it')
+    def _give_way(self, state: State, scratch: State, h: float) -> None:
+        """Many events in a moment: let the mode run a step of ``h`` (s) without watching its
+        events, to break the tie; a collision it leads into is resolved at the next settle."""
+        self.stats.cascades += 1
+        if self.stats.cascades <= 20:
+            self.stats.messages.append(f'event cascade at t={state.t:.9f}s; stepped {h:.1e} s '
+                                       'past it')
         self._settle(state)
-        self._refresh_candidates(state, 1e-9)
+        self._refresh_candidates(state, h)
         y = self._pack(state)
         k0 = self._evaluate(state.t, y, scratch)[0]
-        y1 = self._dopri_step(state.t, y, 1e-9, k0, scratch)[0]
-        self._unpack(state.t + 1e-9, y1, state)
+        y1 = self._dopri_step(state.t, y, h, k0, scratch)[0]
+        self._unpack(state.t + h, y1, state)
         self._mode = None
 
     def _accumulate_forces(self, f0: np.ndarray, f1: np.ndarray, h: float,
@@ -647,7 +667,7 @@ class EventDriven:
         """The held mode's exact motion, if it has the closed form (module docstring).
 
         ``cs`` are the held contacts at ``state`` (None when there are none)."""
-        w, mode, st = self.world, self._mode, self.settings
+        w, mode = self.world, self._mode
         model = self._drive_model(state.t)
         if model is None:
             return None
@@ -661,7 +681,7 @@ class EventDriven:
             return None
         bodies, J, minv, A, P, rows = self._mode_system(cs)
         spin = np.abs(state.omega[bodies]) * self._radius[bodies]
-        if np.any(spin > _SPIN_FRACTION * st.slip_tol_mps):
+        if np.any(spin > _SPIN_FRACTION * self._slip_tol):
             return None
         nd = len(drives[2])
         # Right-hand sides of the held mode per unit source: gravity, then each drive's
@@ -782,7 +802,7 @@ class EventDriven:
         cs = self._contact_set(state, contacts)
         v_n, v_t = _relative_velocity(cs, state)
         for _ in range(20):
-            if not (v_n < -st.slip_tol_mps * 10).any():
+            if not (v_n < -self._slip_tol * 10).any():
                 break
             self._impact(cs, state, v_n, v_t)
             v_n, v_t = _relative_velocity(cs, state)
@@ -791,7 +811,7 @@ class EventDriven:
     def _impact(self, cs: ContactSet, state: State, v_n: np.ndarray, v_t: np.ndarray) -> None:
         """Simultaneous frictional impulse LCP (Kawachi) over every touching contact."""
         st = self.settings
-        colliding = v_n < -st.slip_tol_mps * 10
+        colliding = v_n < -self._slip_tol * 10
         for bodies, idx in self._islands(cs):
             whole = len(idx) == cs.n
             if not (colliding if whole else colliding[idx]).any():
@@ -801,7 +821,7 @@ class EventDriven:
             vn, vt, hit = (v_n, v_t, colliding) if whole else (v_n[idx], v_t[idx], colliding[idx])
             b_full = kern.impact_rhs(vn, vt, sub.restitution, st.rest_speed_mps)
             friction, mu_lo, mu_hi = friction_rows(sub, vt, hit, self.spec.friction_impulse,
-                                                   st.slip_tol_mps)
+                                                   self._slip_tol)
             if not self.spec.friction_impulse:
                 friction[:] = NONE
             p, _, _ = self._solve_lcp('impact', W, b_full, friction, mu_lo, mu_hi)
@@ -825,12 +845,11 @@ class EventDriven:
 
         ``cs`` are the touching contacts (None if there are none), ``v_n, v_t`` their
         relative velocities."""
-        st = self.settings
         if cs is None:
             self._set_mode(state, Contacts.empty(), np.zeros(0, int), np.zeros(0),
                            np.zeros(0, int), (np.zeros(0), np.zeros(0), np.zeros(0)), None)
             return
-        resting = np.flatnonzero(np.abs(v_n) <= st.slip_tol_mps * 10)
+        resting = np.flatnonzero(np.abs(v_n) <= self._slip_tol * 10)
         if len(resting) < cs.n:
             cs = cs.subset(resting)
             v_n, v_t = v_n[resting], v_t[resting]
@@ -839,7 +858,7 @@ class EventDriven:
         friction = np.zeros(k, np.int64)
         sigma = np.sign(v_t)
         acc = self._free_acceleration(state.t)
-        sliding = np.abs(v_t) > st.slip_tol_mps
+        sliding = np.abs(v_t) > self._slip_tol
         for bodies, idx in self._islands(cs):
             whole = len(idx) == k
             sub = cs if whole else cs.subset(idx)
@@ -900,7 +919,7 @@ class EventDriven:
         v_n, v_t = _relative_velocity(cs, state)
         J, minv, W = self._jacobian(cs, bodies)
         friction, mu_lo, mu_hi = friction_rows(cs, v_t, np.zeros(cs.n, bool), True,
-                                               self.settings.slip_tol_mps)
+                                               self._slip_tol)
         p, _, _ = self._solve_lcp('impact', W,
                                   np.concatenate([np.minimum(v_n, 0.0), v_t]), friction, mu_lo,
                                   mu_hi)
