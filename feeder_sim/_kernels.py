@@ -843,8 +843,6 @@ def _vertex_edge(pv_lo, pv_hi, qe_lo, qe_hi, w, nw, active, internal, nxt, prv, 
             nx, ny = nw[e, 0], nw[e, 1]
             dx, dy = px - w[e, 0], py - w[e, 1]
             d = nx * dx + ny * dy
-            if not d >= dmax - tie:
-                continue
             q1 = nxt[e]
             ex, ey = w[q1, 0] - w[e, 0], w[q1, 1] - w[e, 1]
             t = (dx * ex + dy * ey) / (ex * ex + ey * ey)

@@ -19,8 +19,14 @@ Pipeline of :func:`find_contacts`
    vertices of Q against edges of P).  A vertex v is in contact with edge j of the other piece
    when
 
-   * d_j(v) = n_j·(v − q_j) is the largest over that piece's edges (least-penetrated face;
-     among faces tied to rounding level the first one passing all tests is taken),
+   * d_j(v) = n_j·(v − q_j) is the largest over that piece's edges that pass the two tests
+     below (the least-penetrated face v can touch; among faces tied to rounding level the
+     first is taken).  The least-penetrated face of all may fail them: a corner sunk into a
+     face while lying exactly on the line of the end face next to it (boxes stacked flush,
+     cups sitting rim on rim) is 0 from that end face, which its own edges point into; it
+     takes the face it actually entered, where taking none let it sink through,
+   * the vertex is inside or within ``margin`` of the piece: the largest d over *all* its
+     edges is at most ``margin`` (plus the tie),
    * ``-depth <= d_j(v) <= margin``,
    * the projection parameter t lies in ``[-param_tol, 1 + param_tol]`` (the *unclipped* t is
      stored in ``Contacts.edge_param``),
@@ -597,7 +603,7 @@ def _vertices_vs_edges(iv, ie, w, nw, topo: ShapeTopology, margin, depth_g, tie_
     sx = x[..., 0] * nx + x[..., 1] * ny
     slack_u = np.maximum(margin, angle_tol * topo.edge_length[iprev])[:, None]
     slack_x = np.maximum(margin, angle_tol * topo.edge_length[v_r])[:, None]
-    valid = (~internal[g] & (d >= dmax[g, k][:, None] - tie[g])
+    valid = (~internal[g]
              & (t >= -param_tol) & (t <= 1.0 + param_tol)
              & (su >= -slack_u) & (sx >= -slack_x))
     j = np.where(valid, d, -np.inf).argmax(axis=1)

@@ -227,11 +227,29 @@ def test_edge_param_unclipped_within_tolerance():
     assert -1e-9 < c.edge_param.min() < 0.0
     np.testing.assert_allclose(c.gap, 1e-9, atol=1e-15)
     # the same corner 1e-12 m beyond the end but resting: the end face is the least
-    # penetrated face, the box corner is not supporting there, so the track's corner against
-    # the box's bottom edge represents that end instead
+    # penetrated face, which the box corner cannot touch, so it takes the top face it rests
+    # on - the same two contacts as when lifted, now at gap 0
     sc.pos[1] = np.array([-W / 2 + 1e-12, H / 2])
     c = sc.contacts()
-    assert c.n == 2 and sorted(c.body_a.tolist()) == [0, 1]
+    assert c.n == 2
+    assert np.all(c.body_a == 1) and np.all(c.body_b == 0)
+    assert -1e-9 < c.edge_param.min() < 0.0
+    np.testing.assert_allclose(c.gap, 0.0, atol=1e-15)
+
+
+def test_flush_stacked_boxes_sunk_into_each_other_keep_their_contacts():
+    # Boxes stacked flush: the upper one's bottom corners lie exactly on the lines of the
+    # lower one's end faces, so once it sinks 0.1 mm into the lower box, its corners are
+    # 0 from those end faces (the least penetrated) and 0.1 mm into the top face. The
+    # contact is on the top face; taking none let the upper box sink through.
+    sc = Scene(track_pieces=[box(0.1, TRACK_T)], track_pos=(0.0, -TRACK_T / 2))
+    sc.add([box(W, H)], (0.0, H / 2))
+    sc.add([box(W, H)], (0.0, 1.5 * H - 1e-4))
+    c = sc.contacts()
+    upper = c.body_a == 2
+    assert upper.sum() == 2 and np.all(c.body_b[upper] == 1)
+    np.testing.assert_allclose(c.gap[upper], -1e-4, atol=1e-12)
+    np.testing.assert_allclose(c.normal[upper], [[0.0, 1.0]] * 2, atol=1e-12)
 
 
 def test_static_static_and_same_body_never_tested():
