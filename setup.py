@@ -27,7 +27,9 @@ setup(
     extras_require={
         'ros': ros,
         'replay': replay,
-        'test': ros + replay + colcon + ['pytest>=8', 'pytest-timeout>=2.3',
+        # a peer engine for `feeder-sim accuracy` (same cases, same plot)
+        'peers': ['pymunk>=6.6'],
+        'test': ros + replay + colcon + ['pymunk>=6.6', 'pytest>=8', 'pytest-timeout>=2.3',
                                          'hypothesis>=6.100', 'ruff>=0.6'],
     },
     zip_safe=True,

@@ -74,6 +74,40 @@ def _paper(args: argparse.Namespace) -> int:
     return 0
 
 
+def _split(text: str | None) -> list[str] | None:
+    return [x.strip() for x in text.split(',') if x.strip()] if text else None
+
+
+def _accuracy(args: argparse.Namespace) -> int:
+    from feeder_sim.accuracy import CASES, run_accuracy
+
+    if args.list:
+        for key, case in CASES.items():
+            print(f'{key}: {case.description}; {case.quantity}')
+        return 0
+    result = run_accuracy(args.out, cases=_split(args.cases), methods=_split(args.methods),
+                          quick=args.quick, repeats=args.repeats,
+                          progress=None if args.quiet else print)
+    for line in result['misses']:
+        print(f'  MISSED: {line}', file=sys.stderr)
+    return 1 if result['misses'] else 0
+
+
+def _stability(args: argparse.Namespace) -> int:
+    from feeder_sim.stability import run_stability, SCENES
+
+    if args.list:
+        for key, case in SCENES.items():
+            print(f'{key}: {case.description}')
+        return 0
+    kw = {'methods': _split(args.methods)} if args.methods else {}
+    result = run_stability(args.out, cases=_split(args.cases),
+                           progress=None if args.quiet else print, **kw)
+    print(f'stability: {"PASSED" if result["passed"] else "FAILED"} '
+          f'({Path(args.out) / "stability.json"})')
+    return 0 if result['passed'] else 1
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog='feeder-sim', description=__doc__)
     parser.add_argument('--version', action='version', version=f'feeder_sim {__version__}')
@@ -111,6 +145,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--out', default='out/paper', help='output folder (default out/paper)')
     p.add_argument('--only', metavar='FIGS', help='comma-separated subset of fig7,flip,fig8,fig10')
     p.set_defaults(func=_paper)
+
+    p = sub.add_parser('accuracy', help='error against run time of every method on cases with '
+                                        'an exact reference (plot, table, JSON)')
+    p.add_argument('--out', default='out/accuracy', help='output folder (default out/accuracy)')
+    p.add_argument('--cases', metavar='KEYS', help='comma-separated case keys (default: all; '
+                                                    'see --list)')
+    p.add_argument('--methods', metavar='NAMES',
+                   help='comma-separated subset of time_stepping,event_driven,impulse_based,'
+                        'pymunk (default: all; pymunk when installed)')
+    p.add_argument('--quick', action='store_true',
+                   help='only the coarsest and the finest setting of each method')
+    p.add_argument('--repeats', type=int, default=1,
+                   help='time each point this often, keep the median (default 1)')
+    p.add_argument('--list', action='store_true', help='list the cases and exit')
+    p.set_defaults(func=_accuracy)
+
+    p = sub.add_parser('stability', help='stiff and extreme scenes on every method; exits 1 '
+                                         'when a criterion is missed (table PNG + JSON)')
+    p.add_argument('--out', default='out/stability', help='output folder (default '
+                                                          'out/stability)')
+    p.add_argument('--cases', metavar='KEYS', help='comma-separated scene keys (default: all; '
+                                                    'see --list)')
+    p.add_argument('--methods', metavar='NAMES', help='comma-separated subset of the methods')
+    p.add_argument('--list', action='store_true', help='list the scenes and exit')
+    p.set_defaults(func=_stability)
 
     p = sub.add_parser('scenes', help='list the shipped scenes')
     p.set_defaults(func=_scenes)

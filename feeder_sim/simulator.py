@@ -8,6 +8,8 @@
 
 from __future__ import annotations
 
+import copy
+
 from dataclasses import dataclass, replace
 import math
 import os
@@ -123,7 +125,9 @@ class Simulator:
 
     def __init__(self, scene: Scene | str | os.PathLike, *, method: str | None = None,
                  time_step: float | None = None, tolerance: float | None = None,
-                 friction_impulse: bool | None = None) -> None:
+                 friction_impulse: bool | None = None, settings=None) -> None:
+        """``settings``: the stepping method's own settings (``TimeStepSettings``,
+        ``EventSettings`` or ``ImpulseSettings``), for what the scene file does not set."""
         if not isinstance(scene, Scene):
             scene = load_scene(scene)
         changes = {k: v for k, v in (('method', method), ('time_step', time_step),
@@ -139,16 +143,16 @@ class Simulator:
         self.stats = SolverStats()
         self.state = self.world.initial_state()
         self._log = _ImpulseLog()
+        self._settings = settings
         self._stepper = self._make_stepper()
         self.initial_energy_j = self.mechanical_energy()
 
     def _make_stepper(self):
         spec = self.scene.solver
-        if spec.method == 'time_stepping':
-            return TimeStepper(self.world, spec, self.stats)
-        if spec.method == 'event_driven':
-            return EventDriven(self.world, spec, self.stats)
-        return ImpulseBased(self.world, spec, self.stats)
+        kind = {'time_stepping': TimeStepper, 'event_driven': EventDriven,
+                'impulse_based': ImpulseBased}[spec.method]
+        settings = None if self._settings is None else copy.deepcopy(self._settings)
+        return kind(self.world, spec, self.stats, settings)
 
     @property
     def t(self) -> float:
