@@ -43,6 +43,20 @@ def test_every_method_meets_the_stated_tolerance(report):
     assert by['conveying_16hz_3deg_hopping', 'impulse_based']['error'] < 2e-2
 
 
+def test_comparison_picks_the_cheapest_and_the_steady_setting():
+    rows = [{'case': 'conveying_x', 'method': 'pymunk', 'setting': dt, 'error': err,
+             'wall_per_sim_s': wall}
+            for dt, err, wall in ((4e-4, 0.1, 0.01), (2e-4, 0.005, 0.02), (1e-4, 0.02, 0.04),
+                                  (5e-5, 0.008, 0.08), (2.5e-5, 0.004, 0.16))]
+    rows.append({'case': 'conveying_x', 'method': 'event_driven', 'setting': 1e-8,
+                 'error': 1e-9, 'wall_per_sim_s': 0.03})
+    c = accuracy.compare(rows)['conveying_x']
+    assert c['pymunk']['cheapest']['setting'] == 2e-4       # a lucky zero crossing
+    assert c['pymunk']['steady']['setting'] == 5e-5         # every finer step stays within
+    assert c['event_driven']['cheapest']['wall_per_sim_s'] == 0.03
+    assert c['time_stepping'] is None
+
+
 @pytest.mark.timeout(180)
 def test_the_peer_runs_the_same_cases(report):
     pytest.importorskip('pymunk')
