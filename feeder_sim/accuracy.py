@@ -504,10 +504,10 @@ def plot(rows: Sequence[dict], path: Path) -> None:
               'pymunk': 'C7'}
     for ax, key in zip(axes.flat, keys):
         for method in colors:
-            pts = sorted((r['wall_per_sim_s'], r['error']) for r in rows
-                          if r['case'] == key and r['method'] == method)
+            pts = sorted((-r['setting'], r['wall_per_sim_s'], r['error']) for r in rows
+                         if r['case'] == key and r['method'] == method)   # coarse -> fine
             if pts:
-                x, y = zip(*pts)
+                _, x, y = zip(*pts)
                 ax.loglog(x, y, 'o-', color=colors[method], label=method, ms=4)
         ax.set_title(key, fontsize=9)
         ax.set_xlabel('wall time per simulated second (s)')
