@@ -9,7 +9,6 @@
 from __future__ import annotations
 
 import copy
-
 from dataclasses import dataclass, replace
 import math
 import os
