@@ -94,3 +94,19 @@ def test_two_runs_give_identical_logs(tmp_path, method):
         assert main(['-q', 'run', 'track_one_box', '--duration', '0.05', '--method', method,
                      '--time-step', '1e-4', '--record', str(path)]) == 0
     assert paths[0].read_bytes() == paths[1].read_bytes()
+
+
+def test_accuracy_and_stability_verbs(tmp_path, capsys):
+    assert main(['-q', 'accuracy', '--list']) == 0
+    assert 'conveying_16hz_3deg_hopping' in capsys.readouterr().out
+    # one exact case, both ends of the event-driven sweep: within its stated tolerance
+    assert main(['-q', 'accuracy', '--cases', 'free_flight', '--methods', 'event_driven',
+                 '--quick', '--out', str(tmp_path / 'acc')]) == 0
+    rows = json.loads((tmp_path / 'acc' / 'accuracy.json').read_text())['rows']
+    assert len(rows) == 2 and all(r['error'] < 1e-12 for r in rows)
+    assert main(['-q', 'stability', '--cases', 'restitution_1', '--methods', 'event_driven',
+                 '--out', str(tmp_path / 'stab')]) == 0
+    cell = json.loads((tmp_path / 'stab' / 'stability.json').read_text())['cells'][0]
+    assert cell['status'] == 'PASS'
+    # an unknown case is bad input: one clear line, exit 2
+    assert main(['-q', 'accuracy', '--cases', 'nonexistent']) == 2
