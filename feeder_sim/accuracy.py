@@ -372,6 +372,9 @@ def run_accuracy(out_dir: str | os.PathLike, cases: Sequence[str] | None = None,
         raise ValueError(f'unknown accuracy case(s) {", ".join(unknown)}; choose from '
                          f'{", ".join(CASES)}')
     wanted = list(methods or METHODS)
+    bad = [m for m in wanted if m not in METHODS]
+    if bad:
+        raise ValueError(f'unknown method(s) {", ".join(bad)}; choose from {", ".join(METHODS)}')
     if 'pymunk' in wanted and not pymunk_available():
         say('pymunk is not installed: it is left out (pip install pymunk)')
         wanted.remove('pymunk')

@@ -402,7 +402,12 @@ def run_stability(out_dir: str | os.PathLike,
     keys = list(SCENES) if cases is None else list(cases)
     unknown = [k for k in keys if k not in SCENES]
     if unknown:
-        raise KeyError(f'unknown stability case(s): {", ".join(unknown)}')
+        raise ValueError(f'unknown stability case(s) {", ".join(unknown)}; choose from '
+                         f'{", ".join(SCENES)}')
+    bad = [m for m in methods if m not in METHODS]
+    if bad:
+        raise ValueError(f'unknown method(s) {", ".join(bad)}; choose from '
+                         f'{", ".join(METHODS)}')
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     say = progress or (lambda _text: None)
