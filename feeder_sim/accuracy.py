@@ -37,13 +37,12 @@ import time
 
 import numpy as np
 
-from feeder_sim.builders import box, build, conveyor
+from feeder_sim.builders import box_part, build, conveyor, G, ground, on_slope, scene_dict
 from feeder_sim.event_driven import EventSettings
 from feeder_sim.impulse_based import ImpulseSettings
 from feeder_sim.pointmass import Conveyor, mean_speed
 from feeder_sim.simulator import Simulator
 
-G = 9.81
 ERROR_FLOOR = 1e-16
 PART = (0.02, 0.01)            # box width x height, m (the conveying tables' part)
 MASS = 0.01                    # kg
@@ -75,29 +74,15 @@ class Case:
 
 
 # --------------------------------------------------------------------------- scene helpers
-def _material(mu: float, e: float = 0.0) -> dict:
-    return {'mu_static': mu, 'mu_dynamic': mu, 'restitution': e}
+# the scenes' step where nothing vibrates: event_driven's largest step (the sweep sets the others)
+STEP_S = 1e-2
 
 
-def _scene(name: str, method: str, bodies: list[dict], gravity=(0.0, -G),
-           time_step: float = 1e-2) -> dict:
-    return {'name': name, 'gravity': list(gravity), 'bodies': bodies,
-            'solver': {'method': method, 'time_step': time_step}}
-
-
-def _ground(theta: float, mu: float, e: float = 0.0) -> dict:
-    """A 2 m static slab whose top surface passes through the origin at angle ``theta``."""
-    return {'name': 'ground', 'type': 'static', 'polygon': [[-1, -0.02], [1, -0.02], [1, 0],
-                                                            [-1, 0]],
-            'pose': [0.0, 0.0, theta], **_material(mu, e)}
-
-
-def _part_on(theta: float, mu: float, velocity=(0.0, 0.0, 0.0), e: float = 0.0) -> dict:
+def _part_on(theta: float, mu: float) -> dict:
+    """The part resting on a slope of ``theta`` (rad) through the origin."""
     w, h = PART
-    c, s = math.cos(theta), math.sin(theta)
-    return {'name': 'box', 'type': 'dynamic', 'polygon': box(w / 2, h / 2), 'mass': MASS,
-            'pose': [-s * h / 2, c * h / 2, theta], 'velocity': list(velocity),
-            **_material(mu, e)}
+    return box_part('box', w / 2, h / 2, (*on_slope(0.0, h / 2, theta), theta), mu=mu,
+                    mass=MASS)
 
 
 def _track_coordinate(sim: Simulator) -> float:
@@ -106,7 +91,7 @@ def _track_coordinate(sim: Simulator) -> float:
 
 def _along(sim: Simulator, theta: float) -> float:
     """Displacement of the part along the slope (m, downhill positive)."""
-    start = np.array([-math.sin(theta) * PART[1] / 2, math.cos(theta) * PART[1] / 2])
+    start = np.array(on_slope(0.0, PART[1] / 2, theta))
     d = sim.state.position[sim.part_indices[0]] - start
     return float(-(d[0] * math.cos(theta) + d[1] * math.sin(theta)))
 
@@ -121,9 +106,8 @@ def _slide_reference() -> float:
 
 
 def _pymunk_incline(dt: float) -> tuple[float, float]:
-    import pymunk
-    space, track = _pymunk_space(gravity=(G * math.sin(SLIDE_THETA),
-                                          -G * math.cos(SLIDE_THETA)), kinematic=False)
+    space, _ = _pymunk_space(gravity=(G * math.sin(SLIDE_THETA), -G * math.cos(SLIDE_THETA)),
+                             kinematic=False)
     part = _pymunk_box(space, SLIDE_MU)
     x0 = part.position.x
     n = round(SLIDE_T / dt)
@@ -131,7 +115,6 @@ def _pymunk_incline(dt: float) -> tuple[float, float]:
     for _ in range(n):
         space.step(dt)
     wall = time.perf_counter() - t0
-    del pymunk
     return part.position.x - x0, wall / SLIDE_T
 
 
@@ -152,10 +135,9 @@ def _housner_scene(method: str) -> dict:
     h = 0.01
     b = HOUSNER_B_OVER_H * h
     om = HOUSNER_OMEGA
-    body = {'name': 'block', 'type': 'dynamic', 'polygon': box(b, h), 'mass': MASS,
-            'pose': [0.0, h, 0.0], 'velocity': [-h * om, -b * om, om], **_material(5.0)}
-    return _scene('housner', method, [_ground(0.0, 5.0), body], gravity=(0.0, 0.0),
-                  time_step=1e-3)
+    body = box_part('block', b, h, (0.0, h, 0.0), (-h * om, -b * om, om), mu=5.0, mass=MASS)
+    return scene_dict('housner', [ground(mu=5.0, thickness=0.02), body], method, 1e-3,
+                      gravity=(0.0, 0.0))
 
 
 def _housner_reference() -> float:
@@ -210,15 +192,17 @@ def _conveying_case(key: str, track: _Track, regime: str) -> Case:
 CASES: dict[str, Case] = {c.key: c for c in (
     Case('incline_slide', 'box released on a 30 deg incline, mu 0.3',
          'distance slid in 0.5 s vs g (sin - mu cos) t^2 / 2',
-         lambda m: _scene('incline_slide', m, [_ground(SLIDE_THETA, SLIDE_MU),
-                                               _part_on(SLIDE_THETA, SLIDE_MU)]),
+         lambda m: scene_dict('incline_slide', [ground(SLIDE_MU, thickness=0.02,
+                                                       angle=SLIDE_THETA),
+                                                _part_on(SLIDE_THETA, SLIDE_MU)], m, STEP_S),
          lambda sim, _: _along(sim, SLIDE_THETA), _slide_reference, SLIDE_T,
          tolerance={'time_stepping': 1e-3, 'event_driven': 1e-9, 'impulse_based': 1e-3},
          pymunk=_pymunk_incline),
     Case('incline_stick', 'box at rest on a 20 deg incline, mu 0.5 (must stick)',
          'creep in 0.5 s over the frictionless distance g sin t^2 / 2',
-         lambda m: _scene('incline_stick', m, [_ground(STICK_THETA, STICK_MU),
-                                               _part_on(STICK_THETA, STICK_MU)]),
+         lambda m: scene_dict('incline_stick', [ground(STICK_MU, thickness=0.02,
+                                                       angle=STICK_THETA),
+                                                _part_on(STICK_THETA, STICK_MU)], m, STEP_S),
          lambda sim, _: _along(sim, STICK_THETA), lambda: 0.0, STICK_T,
          error_scale=lambda: 0.5 * G * math.sin(STICK_THETA) * STICK_T ** 2,
          tolerance={'time_stepping': 1e-6, 'event_driven': 1e-9, 'impulse_based': 1e-2}),
@@ -230,10 +214,9 @@ CASES: dict[str, Case] = {c.key: c for c in (
          tolerance={'time_stepping': 1e-3, 'event_driven': 1e-9, 'impulse_based': 1e-2}),
     Case('free_flight', 'box thrown at (1, 2) m/s spinning at 10 rad/s',
          'centre of mass after 0.3 s vs the parabola (m over the distance flown)',
-         lambda m: _scene('free_flight', m, [{
-             'name': 'box', 'type': 'dynamic', 'polygon': box(PART[0] / 2, PART[1] / 2),
-             'mass': MASS, 'pose': [0.0, 0.0, 0.0],
-             'velocity': [FLIGHT_V[0], FLIGHT_V[1], FLIGHT_OMEGA]}]),
+         lambda m: scene_dict('free_flight', [box_part(
+             'box', PART[0] / 2, PART[1] / 2, (0.0, 0.0, 0.0),
+             (*FLIGHT_V, FLIGHT_OMEGA), mass=MASS)], m, STEP_S),
          _flight_measure, lambda: 0.0, FLIGHT_T,
          error_scale=lambda: math.hypot(FLIGHT_V[0] * FLIGHT_T,
                                         FLIGHT_V[1] * FLIGHT_T - 0.5 * G * FLIGHT_T ** 2),

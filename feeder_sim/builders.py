@@ -18,6 +18,36 @@ def box(half_w: float, half_h: float) -> list[list[float]]:
     return [[-half_w, -half_h], [half_w, -half_h], [half_w, half_h], [-half_w, half_h]]
 
 
+def ground(mu: float = 0.5, e: float = 0.0, half_length: float = 1.0,
+           thickness: float = 0.1, angle: float = 0.0, name: str = 'ground') -> dict:
+    """Static slab whose top face passes through the origin, tilted by ``angle`` (rad)."""
+    return {'name': name, 'type': 'static',
+            'polygon': [[-half_length, -thickness], [half_length, -thickness],
+                        [half_length, 0.0], [-half_length, 0.0]],
+            'pose': [0.0, 0.0, angle], 'mu_static': mu, 'mu_dynamic': mu, 'restitution': e}
+
+
+def box_part(name: str, half_w: float, half_h: float, pose, velocity=(0.0, 0.0, 0.0),
+             mu: float = 0.5, e: float = 0.0, mass: float = 0.01) -> dict:
+    """A dynamic box (half sizes in m) at ``pose`` [x, y, angle] moving at ``velocity``
+    [vx, vy, omega]."""
+    return {'name': name, 'type': 'dynamic', 'polygon': box(half_w, half_h), 'mass': mass,
+            'pose': [float(v) for v in pose], 'velocity': [float(v) for v in velocity],
+            'mu_static': mu, 'mu_dynamic': mu, 'restitution': e}
+
+
+def on_slope(u: float, height: float, angle: float) -> list[float]:
+    """World position of the point ``u`` along and ``height`` above a slope through 0."""
+    c, s = math.cos(angle), math.sin(angle)
+    return [c * u - s * height, s * u + c * height]
+
+
+def scene_dict(name: str, bodies: list[dict], method: str, time_step: float,
+               gravity: tuple[float, float] = (0.0, -G)) -> dict:
+    return {'name': name, 'gravity': list(gravity),
+            'solver': {'method': method, 'time_step': time_step}, 'bodies': bodies}
+
+
 def conveyor_amplitude(gamma: float, psi: float, theta: float, frequency_hz: float) -> float:
     """Drive amplitude (m, 0-peak along the drive line) giving normal acceleration gamma g_n."""
     omega = 2 * math.pi * frequency_hz

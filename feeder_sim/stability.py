@@ -39,7 +39,8 @@ from typing import Any
 
 import numpy as np
 
-from feeder_sim.builders import box
+from feeder_sim.builders import box, box_part, G, ground, on_slope, scene_dict
+from feeder_sim.impulse_based import ImpulseSettings
 from feeder_sim.scene import parse_scene
 from feeder_sim.simulator import Simulator
 
@@ -47,7 +48,6 @@ __all__ = ['Criterion', 'SceneRun', 'StabilityCase', 'SCENES', 'METHODS', 'run_c
            'run_stability', 'write_table_png']
 
 METHODS = ('time_stepping', 'event_driven', 'impulse_based')
-G = 9.81
 
 
 # --------------------------------------------------------------------------------------------
@@ -519,34 +519,6 @@ def write_table_png(report: Mapping[str, Any], path: str | os.PathLike) -> None:
 # Scene helpers (plain dicts, as in a scene file)
 
 
-def _ground(mu: float = 0.5, e: float = 0.0, half_length: float = 1.0,
-            thickness: float = 0.1, angle: float = 0.0, name: str = 'ground') -> dict:
-    """Static slab whose top face passes through the origin, tilted by ``angle`` (rad)."""
-    return {'name': name, 'type': 'static',
-            'polygon': [[-half_length, -thickness], [half_length, -thickness],
-                        [half_length, 0.0], [-half_length, 0.0]],
-            'pose': [0.0, 0.0, angle], 'mu_static': mu, 'mu_dynamic': mu, 'restitution': e}
-
-
-def _part(name: str, half_w: float, half_h: float, pose, velocity=(0.0, 0.0, 0.0),
-          mu: float = 0.5, e: float = 0.0, mass: float = 0.01) -> dict:
-    return {'name': name, 'type': 'dynamic', 'polygon': box(half_w, half_h), 'mass': mass,
-            'pose': [float(v) for v in pose], 'velocity': [float(v) for v in velocity],
-            'mu_static': mu, 'mu_dynamic': mu, 'restitution': e}
-
-
-def _scene(name: str, bodies: list[dict], method: str, time_step: float,
-           gravity: float = -G) -> dict:
-    return {'name': name, 'gravity': [0.0, gravity],
-            'solver': {'method': method, 'time_step': time_step}, 'bodies': bodies}
-
-
-def _on_slope(u: float, height: float, angle: float) -> list[float]:
-    """World position of the point ``u`` along and ``height`` above a slope through 0."""
-    c, s = math.cos(angle), math.sin(angle)
-    return [c * u - s * height, s * u + c * height]
-
-
 def _steps(ts: float, ed: float, ib: float) -> dict[str, float]:
     return {'time_stepping': ts, 'event_driven': ed, 'impulse_based': ib}
 
@@ -557,7 +529,7 @@ def _single(name: str, bodies: Callable[[Mapping[str, Any]], list[dict]],
     """Builder of a one-scene case whose duration is ``params['duration_s'][method]``."""
     def build(method: str, p: Mapping[str, Any]) -> list[SceneRun]:
         duration = p['duration_s'][method]
-        scene = _scene(name, bodies(p), method, steps[method], gravity)
+        scene = scene_dict(name, bodies(p), method, steps[method], (0.0, gravity))
         chunk = _chunk(duration / chunks, method, steps[method])
         return [SceneRun(scene, duration, chunk, name)]
     return build
@@ -605,7 +577,7 @@ def _energy_change(records: list[_Record]) -> float:
 # The impulse-based method rests a part by micro-collisions that bounce it back to its 10 nm
 # collision envelope eps: it never stops, it hops at sqrt(2 |g| eps) = 0.44 mm/s, with kinetic
 # energy up to m |g| eps. Its resting bounds below are stated from these.
-_ENVELOPE_M = 1e-8
+_ENVELOPE_M = ImpulseSettings().envelope_m
 _MICRO_SPEED = math.sqrt(2 * G * _ENVELOPE_M)
 
 
@@ -634,11 +606,12 @@ def _stack_bodies(ratio: float) -> Callable[[Mapping[str, Any]], list[dict]]:
     """Four boxes on the ground, light and heavy alternating (the heavy ones narrower, so no
     corners coincide): every contact between parts has the mass ratio ``ratio``."""
     def bodies(_p):
-        out = [_ground(mu=0.5)]
+        out = [ground(mu=0.5)]
         for i in range(4):
             heavy = i % 2 == 1
-            out.append(_part(f'box_{i}', 0.008 if heavy else 0.01, 0.005,
-                             (0.0, 0.005 + 0.01 * i, 0.0), mass=0.01 * (ratio if heavy else 1.0)))
+            out.append(box_part(f'box_{i}', 0.008 if heavy else 0.01, 0.005,
+                                (0.0, 0.005 + 0.01 * i, 0.0),
+                                mass=0.01 * (ratio if heavy else 1.0)))
         return out
     return bodies
 
@@ -666,10 +639,10 @@ for _exp in (2, 4, 6):
 
 def _heavy_on_light_bodies(p: Mapping[str, Any]) -> list[dict]:
     light = 1e-3
-    return [_ground(mu=0.5),
-            _part('leg_left', 0.005, 0.005, (-0.08, 0.005, 0.0), mass=light),
-            _part('leg_right', 0.005, 0.005, (0.08, 0.005, 0.0), mass=light),
-            _part('plank', 0.1, 0.01, (0.0, 0.02, 0.0), mass=light * p['ratio'])]
+    return [ground(mu=0.5),
+            box_part('leg_left', 0.005, 0.005, (-0.08, 0.005, 0.0), mass=light),
+            box_part('leg_right', 0.005, 0.005, (0.08, 0.005, 0.0), mass=light),
+            box_part('plank', 0.1, 0.01, (0.0, 0.02, 0.0), mass=light * p['ratio'])]
 
 
 _register(_case(
@@ -688,8 +661,8 @@ _SLOPE = math.radians(30.0)
 
 
 def _frictionless_bodies(_p) -> list[dict]:
-    return [_ground(mu=0.0, angle=_SLOPE),
-            _part('box', 0.01, 0.005, (*_on_slope(0.8, 0.005, _SLOPE), _SLOPE), mu=0.0)]
+    return [ground(mu=0.0, angle=_SLOPE),
+            box_part('box', 0.01, 0.005, (*on_slope(0.8, 0.005, _SLOPE), _SLOPE), mu=0.0)]
 
 
 def _frictionless_measure(records: list[_Record], _p) -> dict[str, float]:
@@ -722,8 +695,8 @@ _STEEP = math.radians(60.0)
 
 
 def _sticky_slope_bodies(_p) -> list[dict]:
-    return [_ground(mu=2.0, angle=_STEEP),
-            _part('box', 0.01, 0.005, (*_on_slope(0.5, 0.005, _STEEP), _STEEP), mu=2.0)]
+    return [ground(mu=2.0, angle=_STEEP),
+            box_part('box', 0.01, 0.005, (*on_slope(0.5, 0.005, _STEEP), _STEEP), mu=2.0)]
 
 
 _register(_case(
@@ -741,8 +714,8 @@ _register(_case(
 def _landing_bodies(_p) -> list[dict]:
     # lands flat 0.1 mm below its start: the normal impulse m 1 m/s times mu = 2 is ten times
     # what stopping 0.2 m/s of slip needs, so Kawachi's friction impulse stops it at landing
-    return [_ground(mu=2.0),
-            _part('box', 0.01, 0.005, (0.0, 0.0051, 0.0), (0.2, -1.0, 0.0), mu=2.0)]
+    return [ground(mu=2.0),
+            box_part('box', 0.01, 0.005, (0.0, 0.0051, 0.0), (0.2, -1.0, 0.0), mu=2.0)]
 
 
 def _landing_measure(records: list[_Record], _p) -> dict[str, float]:
@@ -771,9 +744,9 @@ _ROD_L, _ROD_T, _ROD_THETA = 0.1, 0.001, math.radians(60.0)
 
 def _painleve_bodies(p: Mapping[str, Any]) -> list[dict]:
     y = _ROD_L * math.sin(_ROD_THETA) + _ROD_T * math.cos(_ROD_THETA)
-    return [_ground(mu=1.5),
-            _part('rod', _ROD_L, _ROD_T, (0.0, y, _ROD_THETA), (-p['speed_mps'], 0.0, 0.0),
-                  mu=1.5)]
+    return [ground(mu=1.5),
+            box_part('rod', _ROD_L, _ROD_T, (0.0, y, _ROD_THETA), (-p['speed_mps'], 0.0, 0.0),
+                     mu=1.5)]
 
 
 def _painleve_measure(records: list[_Record], _p) -> dict[str, float]:
@@ -801,7 +774,7 @@ _register(_case(
 
 def _bouncer_bodies(e: float, mu: float) -> Callable[[Mapping[str, Any]], list[dict]]:
     def bodies(_p):
-        return [_ground(mu=mu, e=e), _part('box', 0.01, 0.005, (0.0, 0.03, 0.3), mu=mu, e=e)]
+        return [ground(mu=mu, e=e), box_part('box', 0.01, 0.005, (0.0, 0.03, 0.3), mu=mu, e=e)]
     return bodies
 
 
@@ -845,8 +818,8 @@ _register(_case(
 # Geometry: aspect ratio 100, sizes 0.5 mm and 2 m, coincident vertices, parallel edges -----
 
 def _sliver_bodies(_p) -> list[dict]:
-    return [_ground(mu=0.5), _part('sliver', 0.05, 0.0005, (0.0, 0.01, 0.05), mu=0.5,
-                                   mass=1e-3)]
+    return [ground(mu=0.5), box_part('sliver', 0.05, 0.0005, (0.0, 0.01, 0.05), mu=0.5,
+                                      mass=1e-3)]
 
 
 def _sliver_measure(records: list[_Record], _p) -> dict[str, float]:
@@ -875,9 +848,9 @@ def _scaled_bodies(size_m: float) -> list[dict]:
     tilted at 0.5 sqrt(g L) onto a mu = 0.4 floor; it lands on a corner, falls flat, slides
     and stops."""
     L = size_m
-    return [_ground(mu=0.4, half_length=50.0 * L, thickness=L),
-            _part('box', 0.5 * L, 0.25 * L, (0.0, 0.6 * L, 0.3),
-                  (0.5 * math.sqrt(G * L), 0.0, 0.0), mu=0.4, mass=25.0 * L * L)]
+    return [ground(mu=0.4, half_length=50.0 * L, thickness=L),
+            box_part('box', 0.5 * L, 0.25 * L, (0.0, 0.6 * L, 0.3),
+                     (0.5 * math.sqrt(G * L), 0.0, 0.0), mu=0.4, mass=25.0 * L * L)]
 
 
 _SCALE_REF_M = 0.02
@@ -892,7 +865,7 @@ def _scaled_runs(size_m: float) -> Callable[[str, Mapping[str, Any]], list[Scene
             # steps and chunks in units of tau: the scaled runs are the same in those units
             step = {'time_stepping': tau / 200, 'event_driven': tau / 5,
                     'impulse_based': tau / 50}[method]
-            scene = _scene(f'scale_{L:g}m', _scaled_bodies(L), method, step)
+            scene = scene_dict(f'scale_{L:g}m', _scaled_bodies(L), method, step)
             duration = _SCALE_TAUS * tau
             runs.append(SceneRun(scene, duration, _chunk(duration / 60, method, step), label))
         return runs
@@ -931,11 +904,11 @@ _register(_scale_case('scale_2m', 2.0, 'a 2 m part'))
 def _coincident_bodies(_p) -> list[dict]:
     # A on the ground, B exactly on A, C exactly beside A, D dropped exactly onto C: at
     # (0.01, 0.01) the corners of A, B, C and D meet; every face pair is exactly parallel
-    return [_ground(mu=0.5),
-            _part('A', 0.01, 0.005, (0.0, 0.005, 0.0)),
-            _part('B', 0.01, 0.005, (0.0, 0.015, 0.0)),
-            _part('C', 0.01, 0.005, (0.02, 0.005, 0.0)),
-            _part('D', 0.01, 0.005, (0.02, 0.017, 0.0))]
+    return [ground(mu=0.5),
+            box_part('A', 0.01, 0.005, (0.0, 0.005, 0.0)),
+            box_part('B', 0.01, 0.005, (0.0, 0.015, 0.0)),
+            box_part('C', 0.01, 0.005, (0.02, 0.005, 0.0)),
+            box_part('D', 0.01, 0.005, (0.02, 0.017, 0.0))]
 
 
 def _coincident_measure(records: list[_Record], _p) -> dict[str, float]:
@@ -967,10 +940,10 @@ _SLIDE_V, _SLIDE_MU = 0.3, 0.3
 def _parallel_bodies(_p) -> list[dict]:
     # contact friction is sqrt(mu_a mu_b) and restitution the larger of the two: the floor has
     # mu 1 and e 0; the dropped box gets mu 0.5 and e 0.5, the sliding one mu 0.3 and e 0
-    drop = _part('drop', 0.01, 0.005, (0.0, 0.02, 0.0), mu=0.25, e=0.5)
-    slide = _part('slide', 0.01, 0.005, (0.1, 0.005, 0.0), (_SLIDE_V, 0.0, 0.0),
-                  mu=_SLIDE_MU ** 2)
-    return [_ground(mu=1.0), drop, slide]
+    drop = box_part('drop', 0.01, 0.005, (0.0, 0.02, 0.0), mu=0.25, e=0.5)
+    slide = box_part('slide', 0.01, 0.005, (0.1, 0.005, 0.0), (_SLIDE_V, 0.0, 0.0),
+                     mu=_SLIDE_MU ** 2)
+    return [ground(mu=1.0), drop, slide]
 
 
 def _parallel_measure(records: list[_Record], _p) -> dict[str, float]:
@@ -1043,8 +1016,8 @@ def _thrown_bodies(_p) -> list[dict]:
     wall = {'name': 'wall', 'type': 'static', 'polygon': box(_WALL_HALF, 0.1),
             'pose': [_WALL_X, 0.0, 0.0], 'mu_static': 0.3, 'mu_dynamic': 0.3,
             'restitution': 0.5}
-    return [wall, _part('part', 0.005, 0.005, (0.0, 0.0, 0.2), (10.0, 0.0, 20.0), mu=0.3,
-                        e=0.5)]
+    return [wall, box_part('part', 0.005, 0.005, (0.0, 0.0, 0.2), (10.0, 0.0, 20.0), mu=0.3,
+                           e=0.5)]
 
 
 def _thrown_measure(records: list[_Record], _p) -> dict[str, float]:
@@ -1081,9 +1054,9 @@ _CRADLE_EXPECTED = {'time_stepping': _CRADLE_LCP, 'event_driven': _CRADLE_LCP,
 
 
 def _cradle_bodies(_p) -> list[dict]:
-    return [_part('ball_1', 0.005, 0.005, (-0.012, 0.0, 0.0), (1.0, 0.0, 0.0), mu=0.0, e=1.0),
-            _part('ball_2', 0.005, 0.005, (0.0, 0.0, 0.0), mu=0.0, e=1.0),
-            _part('ball_3', 0.005, 0.005, (0.01, 0.0, 0.0), mu=0.0, e=1.0)]
+    return [box_part('ball_1', 0.005, 0.005, (-0.012, 0.0, 0.0), (1.0, 0.0, 0.0), mu=0.0, e=1.0),
+            box_part('ball_2', 0.005, 0.005, (0.0, 0.0, 0.0), mu=0.0, e=1.0),
+            box_part('ball_3', 0.005, 0.005, (0.01, 0.0, 0.0), mu=0.0, e=1.0)]
 
 
 def _cradle_measure(records: list[_Record], _p) -> dict[str, float]:
@@ -1131,7 +1104,7 @@ def _pile_bodies(p: Mapping[str, Any]) -> list[dict]:
     """``n_parts`` 20 x 10 mm boxes in staggered rows above a static floor between static
     walls, dropped from up to ~0.35 m (500 parts: 16 rows)."""
     half = 0.5 * _PILE_WIDTH
-    bodies = [_ground(mu=0.5, half_length=half + 0.05)]
+    bodies = [ground(mu=0.5, half_length=half + 0.05)]
     for side in (-1, 1):
         bodies.append({'name': f'wall_{side:+d}', 'type': 'static',
                        'polygon': box(0.005, 0.25), 'pose': [side * (half + 0.005), 0.25, 0.0],
@@ -1146,7 +1119,7 @@ def _pile_bodies(p: Mapping[str, Any]) -> list[dict]:
         x = (col - 0.5 * (in_row - 1)) * pitch + (0.25 * pitch if row % 2 else 0.0)
         x += rng.uniform(-0.003, 0.003)
         y = 0.02 + 0.02 * row + rng.uniform(0.0, 0.004)
-        bodies.append(_part(f'part_{i}', 0.01, 0.005, (x, y, rng.uniform(-0.3, 0.3))))
+        bodies.append(box_part(f'part_{i}', 0.01, 0.005, (x, y, rng.uniform(-0.3, 0.3))))
     return bodies
 
 
