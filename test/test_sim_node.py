@@ -102,6 +102,10 @@ class Graph:
     def close(self) -> None:
         if self.node is not None:
             self.node.close()
+            # destroyed, not left to the garbage collector: a lingering node keeps its latched
+            # geometry writer alive, and the next test's late subscriber would receive it
+            self.node.destroy_node()
+        self.probe.destroy_node()
         self.executor.shutdown()
         rclpy.shutdown(context=self.context)
 
