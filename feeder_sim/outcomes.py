@@ -27,6 +27,8 @@ class PartOutcome:
     exit_time_s: float | None = None
     exit_angle_rad: float | None = None   # relative to the track, in (-pi, pi]
     exit_orientation: str | None = None   # the nearest named orientation, or 'other'
+    exit_point_m: list[float] | None = None   # centre of mass (world) as it crossed the exit
+    #                                           line: which lane or chute the part took
     jam_time_s: float | None = None       # first time the part was found jammed
     jam_position_m: list[float] | None = None   # its centre of mass then (world)
 
@@ -63,12 +65,13 @@ class OutcomeTracker:
             self._t0 = t_s
         self._t = t_s
         exit_at = self.spec.exit_position
-        for part, s, a in zip(self.parts, progress_m, angle_rad):
+        position = np.array(position_m, dtype=float).reshape(-1, 2)
+        for part, s, a, p in zip(self.parts, progress_m, angle_rad, position):
             if part.exit_time_s is None and exit_at is not None and s >= exit_at:
                 part.exit_time_s = float(t_s)
+                part.exit_point_m = [float(p[0]), float(p[1])]
                 part.exit_angle_rad = float(math.remainder(a, 2.0 * math.pi))
                 part.exit_orientation = classify(part.exit_angle_rad, self.spec)
-        position = np.array(position_m, dtype=float).reshape(-1, 2)
         self._history.append((t_s, position))
         # Keep just enough history to look back one jam_time.
         while len(self._history) > 1 and self._history[1][0] <= t_s - self.spec.jam_time:

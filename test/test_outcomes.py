@@ -23,7 +23,9 @@ def test_tracker_on_prescribed_motion():
     out = tracker.summary()
     a, b = out['parts']
     assert a['exit_time_s'] == pytest.approx(1.0) and a['exit_angle_rad'] == pytest.approx(0.1)
+    assert a['exit_point_m'] == pytest.approx([1.0, 0.0])   # where it crossed the exit line
     assert a['jam_time_s'] is None
+    assert b['exit_point_m'] is None
     assert b['exit_time_s'] is None and b['jam_time_s'] == pytest.approx(0.5)
     assert out['parts_exited'] == 1 and out['jams'] == 1
     assert out['feed_rate_parts_per_min'] == pytest.approx(60.0 / 2.0)
