@@ -946,6 +946,7 @@ _U, _C, _NC, _L, _H, _DEAD, _Z = 0, 1, 2, 3, 4, 5, 6
 (_DONE_C, _DONE_L, _DONE_H, _BAD, _C_NC, _NC_C, _C_L, _C_H, _SL_C,
  _Z_C) = 0, 1, 2, 3, 4, 5, 6, 7, 8, 9
 _EPS_W = 1e-12
+_EPS_ROW = 1e-13      # ``lcp._Dantzig.EPS_ROW``: a normal row's own round-off scale
 _EPS_RATE = 1e-11
 # abort codes (0 = success); ``time_stepping._ABORTS`` spells them out
 _OK, _PIVOT_CAP, _NO_STEP, _NONFINITE, _BAD_END, _CYCLING, _BUDGET, _NUMERIC = range(8)
@@ -1223,9 +1224,24 @@ def dantzig(A, b, nof, lo, hi, max_pivots):
                     d, sigma = k, 1.0
             elif nr0 >= 0:
                 if w[jmin] >= -eps:
+                    # zero on the problem's scale; some row may still approach on its own
+                    # (``lcp._Dantzig._approaching``)
+                    floor = _EPS_W * max(bmax, 1e-300)
+                    late = -1
                     for i in range(m):
-                        if st[i] == _U and nof[i] < 0:
-                            st[i] = _NC
+                        if st[i] == _U and nof[i] < 0 and w[i] < 0.0:
+                            s_i = 0.0
+                            for j in range(m):
+                                s_i += abs(A[i, j]) * abs(x[j])
+                            if w[i] < -max(floor, _EPS_ROW * s_i) and (
+                                    late < 0 or w[i] < w[late]):
+                                late = i
+                    if late >= 0:
+                        d, sigma = late, 1.0
+                    else:
+                        for i in range(m):
+                            if st[i] == _U and nof[i] < 0:
+                                st[i] = _NC
                 else:
                     d, sigma = jmin, 1.0
             else:

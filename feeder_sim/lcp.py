@@ -284,6 +284,12 @@ class _Dantzig:
     """
 
     EPS_W = 1e-12     # |w| below EPS_W * (scale of w) counts as zero
+    # A normal row counts as separating (NC) when w_i >= -EPS_ROW * sum_j |A_ij x_j| as well:
+    # the round-off of w_i is set by the terms summed into it, not by the problem's largest
+    # entry and impulse. A light body under a heavy one (mass ratio 1e6) has a real approach
+    # velocity of 1e-8 m/s at a corner that the global scale (max|A| max|x| ~ 1e4 m/s) hides;
+    # accepted as zero, the light body rocks and sinks by that much every step.
+    EPS_ROW = 1e-13
     EPS_RATE = 1e-11  # rates below EPS_RATE * max|A| * max|dx| are round-off
 
     def __init__(self, data: _Data, max_pivots: int, normals_first: bool = False) -> None:
@@ -317,6 +323,18 @@ class _Dantzig:
     def _eps_w(self) -> float:
         xmax = max(map(abs, self.x), default=0.0)
         return self.EPS_W * max(self.bmax, self.amax * xmax, 1e-300)
+
+    def _approaching(self, rows: list[int]) -> list[int]:
+        """The normal rows among ``rows`` whose negative w exceeds their own round-off
+        (``EPS_ROW`` times the terms summed into w_i; ``EPS_W * max|b|`` at least)."""
+        w = self.w
+        neg = [i for i in rows if w[i] < 0.0]
+        if not neg:
+            return []
+        scale = np.abs(self.A[neg]) @ np.abs(np.array(self.x))
+        floor = self.EPS_W * max(self.bmax, 1e-300)
+        return [i for i, s in zip(neg, scale.tolist(), strict=True)
+                if w[i] < -max(floor, self.EPS_ROW * s)]
 
     def _solve(self, M: np.ndarray, r: np.ndarray) -> np.ndarray:
         n = r.shape[0]
@@ -593,6 +611,11 @@ class _Dantzig:
                 j = min(nr, key=w.__getitem__)
                 eps = self._eps_w()
                 if w[j] >= -eps:
+                    # zero on the problem's scale; some row may still approach on its own
+                    late = self._approaching(nr)
+                    if late:
+                        self._drive(min(late, key=w.__getitem__), 1.0)
+                        continue
                     for i in nr:
                         st[i] = _NC
                 else:
