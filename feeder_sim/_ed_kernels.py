@@ -6,7 +6,10 @@
   ``s`` the drives' scalar accelerations; the angle advances at the anchor's constant rate).
   Held contacts carry their forces ``f0 + f1 @ s(t)`` (normal rows, then tangential rows).
 * Candidate collisions: an active corner against a convex piece, whose gap is the largest
-  signed distance of the corner from the piece's edge lines (< 0 only inside the piece).
+  signed distance of the corner from the piece's edge lines (< 0 only inside the piece),
+  leaving out lines the corner lies flush on with its own piece on their inner side.
+  Candidate arrays: vertex body, local coordinates, piece body, first and end edge, the
+  corner's two edge vectors (local, ``(c, 2, 2)``) and the piece's minimum width (m).
 * Small contact systems: Jacobian and Delassus matrix, the boxed LCP of
   :func:`feeder_sim.dynamics.assemble`, an LCP solved on a given active set and its residual,
   the force LCP's right-hand side and the mode it implies.
@@ -30,6 +33,11 @@ FIXED, DRIVEN, MOVING = 0, 1, 2
 DONE, EVENT, REFRESH = 0, 1, 2
 NO_FRICTION, STICK, SLIDE = 0, 1, 2
 BOX_ROW, SLAVED_ROW = 1, 2    # friction treatment of a contact LCP row (feeder_sim.dynamics)
+# A corner within FLUSH_M (m) of an edge line whose edges leave it at most FLUSH_ANGLE (rad)
+# outwards of that line lies flush on it (``_flush``). FLUSH_M is ten times the depth at which
+# a collision event fires (1e-12 m), so a corner that drifts by round-off stays flush.
+FLUSH_M = 1e-11
+FLUSH_ANGLE = 1e-9
 
 
 @numba.njit(**_JIT)
@@ -82,28 +90,50 @@ def _poses(t, t0, kind, index, pos0, ang0, vel0, om0, phi0, phi1, dr_u, dr_base,
 
 
 @numba.njit(**_JIT)
-def _vertex_piece_gap(pos, ang, vbody, local, pbody, start, end, verts, normals):
+def _vertex_piece_gap(pos, ang, vbody, local, wedge, pbody, start, end, verts, normals):
+    """Signed distance (m) of a corner from a convex piece: the largest over the piece's edge
+    lines, leaving out the lines the corner lies flush on (see ``_flush``)."""
     px, py = world_point(pos, ang, vbody, local)
     c, s = math.cos(ang[pbody]), math.sin(ang[pbody])
     best = -np.inf
+    every = -np.inf
     for j in range(start, end):
         qx = pos[pbody, 0] + c * verts[j, 0] - s * verts[j, 1]
         qy = pos[pbody, 1] + s * verts[j, 0] + c * verts[j, 1]
         nx = c * normals[j, 0] - s * normals[j, 1]
         ny = s * normals[j, 0] + c * normals[j, 1]
         d = nx * (px - qx) + ny * (py - qy)
-        if d > best:
+        every = max(every, d)
+        if d > best and not (abs(d) <= FLUSH_M and _flush(ang[vbody], wedge, nx, ny)):
             best = d
-    return best
+    return best if best > -np.inf else every
 
 
 @numba.njit(**_JIT)
-def candidate_gaps(pos, ang, cv_body, cv_local, cp_body, cp_start, cp_end, verts, normals,
-                   out):
+def _flush(angle, wedge, nx, ny):
+    """True if the corner's piece lies on the inner side of the edge line (normal n) through
+    it: both edges leaving the corner run along the line or into the other piece.
+
+    Such a line does not show the corner outside: a block sliding face-on into an identical
+    one with aligned corners has every corner exactly on the line of a side face of the other
+    block while the faces overlap, so the largest distance stays 0 and the overlap is never
+    seen."""
+    c, s = math.cos(angle), math.sin(angle)
+    for i in range(2):
+        ex = c * wedge[i, 0] - s * wedge[i, 1]
+        ey = s * wedge[i, 0] + c * wedge[i, 1]
+        if nx * ex + ny * ey > FLUSH_ANGLE * math.sqrt(ex * ex + ey * ey):
+            return False
+    return True
+
+
+@numba.njit(**_JIT)
+def candidate_gaps(pos, ang, cv_body, cv_local, cp_body, cp_start, cp_end, cv_wedge, cp_width,
+                   verts, normals, out):
     """Gap (m) of every candidate vertex against its piece: > 0 outside, < 0 inside."""
     for i in range(cv_body.shape[0]):
-        out[i] = _vertex_piece_gap(pos, ang, cv_body[i], cv_local[i], cp_body[i], cp_start[i],
-                                   cp_end[i], verts, normals)
+        out[i] = _vertex_piece_gap(pos, ang, cv_body[i], cv_local[i], cv_wedge[i], cp_body[i],
+                                   cp_start[i], cp_end[i], verts, normals)
 
 
 @numba.njit(**_JIT)
@@ -152,7 +182,7 @@ def _events(t, t0, bodies, drives, contacts, cands, verts, normals, scales, pos,
     dr_u, dr_base, dr_amp, dr_w, dr_phase, t_ref = drives
     (c_a, c_b, vloc, q0loc, q1loc, nloc, f0, f1, friction, sigma, mu_s, group,
      n_groups) = contacts
-    cv_body, cv_local, cp_body, cp_start, cp_end = cands
+    cv_body, cv_local, cp_body, cp_start, cp_end, cv_wedge, _ = cands
     force_scale, speed_scale, gap_scale = scales
     _poses(t, t0, kind, index, pos0, ang0, vel0, om0, phi0, phi1, dr_u, dr_base, dr_amp, dr_w,
            dr_phase, t_ref, pos, ang, vel, om, acc_drive, dvel_drive)
@@ -180,8 +210,8 @@ def _events(t, t0, bodies, drives, contacts, cands, verts, normals, scales, pos,
         g[j] = 1.0 - params[i]
         j += 1
     for i in range(cv_body.shape[0]):
-        g[j] = _vertex_piece_gap(pos, ang, cv_body[i], cv_local[i], cp_body[i], cp_start[i],
-                                 cp_end[i], verts, normals) / gap_scale
+        g[j] = _vertex_piece_gap(pos, ang, cv_body[i], cv_local[i], cv_wedge[i], cp_body[i],
+                                 cp_start[i], cp_end[i], verts, normals) / gap_scale
         j += 1
 
 
@@ -685,10 +715,10 @@ def _mode_rhs(t, y, spec, pos, ang, vel, om, acc, dydt, g, f):
     for i in range(k):
         g[j] = 1.0 - params[i]
         j += 1
-    cv_body, cv_local, cp_body, cp_start, cp_end = cands
+    cv_body, cv_local, cp_body, cp_start, cp_end, cv_wedge, _ = cands
     for i in range(cv_body.shape[0]):
-        g[j] = _vertex_piece_gap(pos, ang, cv_body[i], cv_local[i], cp_body[i], cp_start[i],
-                                 cp_end[i], verts, normals) / gap_scale
+        g[j] = _vertex_piece_gap(pos, ang, cv_body[i], cv_local[i], cv_wedge[i], cp_body[i],
+                                 cp_start[i], cp_end[i], verts, normals) / gap_scale
         j += 1
 
 

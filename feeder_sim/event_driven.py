@@ -119,7 +119,7 @@ class _Candidates:
 
     vertex: np.ndarray        # (c,) global vertex index
     piece: np.ndarray         # (c,) piece the vertex may enter
-    arrays: tuple             # kernel arrays: vertex body, local coords, piece body, start, end
+    arrays: tuple             # kernel arrays (see _candidate_arrays)
     anchor_pos: np.ndarray    # (n, 2) poses at detection
     anchor_ang: np.ndarray    # (n,)
     margin: float             # bounding boxes farther apart than this were left out
@@ -254,6 +254,8 @@ class EventDriven:
         self._verts = np.ascontiguousarray(sh.vertices, dtype=float)
         self._normals = np.ascontiguousarray(sh.normals, dtype=float)
         self._next_vertex = topo.next_vertex
+        self._prev_vertex = topo.prev_vertex
+        self._piece_width = np.ascontiguousarray(topo.piece_width, dtype=float)
         self._vertex_body = topo.vertex_body
         self._vertex_piece = topo.vertex_piece
         self._active_vertex = np.flatnonzero(topo.vertex_active)
@@ -766,7 +768,7 @@ class EventDriven:
         vb, ps, pb = self._vertex_body, self._piece_start, self._piece_body
         if len(pb) < 2:
             none = np.zeros(0, dtype=np.int64)
-            return _Candidates(none, none, (none, np.zeros((0, 2)), none, none, none),
+            return _Candidates(none, none, self._candidate_arrays(none, none),
                                state.position.copy(), state.angle.copy(), margin, state.t)
         ang = state.angle[vb]
         c, s = np.cos(ang), np.sin(ang)
@@ -782,10 +784,18 @@ class EventDriven:
         vertex_piece = self._vertex_piece[self._active_vertex]
         rows, cols = np.nonzero(near[vertex_piece])
         vertex, piece = self._active_vertex[rows], cols
-        arrays = (vb[vertex].astype(np.int64), v[vertex], pb[piece].astype(np.int64),
-                  ps[piece].astype(np.int64), ps[piece + 1].astype(np.int64))
-        return _Candidates(vertex, piece, arrays, state.position.copy(), state.angle.copy(),
-                           margin, state.t)
+        return _Candidates(vertex, piece, self._candidate_arrays(vertex, piece),
+                           state.position.copy(), state.angle.copy(), margin, state.t)
+
+    def _candidate_arrays(self, vertex: np.ndarray, piece: np.ndarray) -> tuple:
+        """Kernel arrays of candidate corners against pieces (see :mod:`_ed_kernels`)."""
+        v, ps = self._verts, self._piece_start
+        wedge = np.stack([v[self._next_vertex[vertex]] - v[vertex],
+                          v[self._prev_vertex[vertex]] - v[vertex]], axis=1).reshape(-1, 2, 2)
+        return (self._vertex_body[vertex].astype(np.int64), v[vertex],
+                self._piece_body[piece].astype(np.int64), ps[piece].astype(np.int64),
+                ps[piece + 1].astype(np.int64), np.ascontiguousarray(wedge),
+                self._piece_width[piece])
 
     # ------------------------------------------------------------------ events
     def _settle(self, state: State) -> None:
