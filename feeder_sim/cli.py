@@ -143,7 +143,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser('paper', help="regenerate the paper's figures (PNG + JSON)")
     p.add_argument('--out', default='out/paper', help='output folder (default out/paper)')
-    p.add_argument('--only', metavar='FIGS', help='comma-separated subset of fig7,flip,fig8,fig10')
+    p.add_argument('--only', metavar='FIGS',
+                   help='comma-separated subset of fig7,flip,fig8,fig9,fig10')
     p.set_defaults(func=_paper)
 
     p = sub.add_parser('accuracy', help='error against run time of every method on cases with '

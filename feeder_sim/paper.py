@@ -6,6 +6,9 @@
   acceleration (Gamma), with and without the friction impulse, from the analytic point mass and
   from the event-driven simulation of the part.
 - Fig. 8: the event-driven method against the impulse-based method on the same scenes.
+- Fig. 9: a filmstrip of the centre-partition orienter (``orienter_partition``): cups fed
+  from a magazine either way round fall onto a partition and all leave open end up, down the
+  lane on their closed end's side.
 - Fig. 10: filmstrips of the hook orienter for cup parts (``orienter_hook``: every cup leaves
   open end up; ``orienter_hook_short``: the hook is too short and the queue jams), with the
   outcome measures of each run.
@@ -40,7 +43,11 @@ TRACK_SCENES = {
 }
 HOOK_SCENES = ('orienter_hook', 'orienter_hook_short')
 FILMSTRIP_TIMES_S = (0.0, 0.6, 0.72, 0.78, 2.8, 4.5)
-FIGURES = ('fig7', 'flip', 'fig8', 'fig10')
+# the first cup (open end right) falls in the first stroke, the second (open end left) in
+# the next
+PARTITION_TIMES_S = (0.0, 0.46, 0.52, 0.58, 1.46, 1.52, 1.58, 6.0)
+FIGURES = ('fig7', 'flip', 'fig8', 'fig9', 'fig10')
+_PARTITION_X_M = -0.00075    # the partition's tip in orienter_partition
 
 
 def trace(scene: Scene | str, duration_s: float, rate_hz: float = 200.0,
@@ -204,21 +211,23 @@ def figure8(out: Path, duration_s: float = 1.0) -> dict:
 
 
 def _outlines_at(sim: Simulator) -> list[tuple[str, str, list[np.ndarray]]]:
-    """(name, type, world outlines in mm) of every body of ``sim`` now; the kinematic track is
-    drawn at its nominal pose (its vibration is a fraction of a millimetre)."""
-    names, origin, angle = sim.part_poses()
-    pose = {n: (o, a) for n, o, a in zip(names, origin, angle)}
+    """(name, type, world outlines in mm) of every body of ``sim`` now, moving bodies where
+    they are (a vibrating track a fraction of a millimetre off, a slide its whole stroke)."""
+    origin, angle = sim.world.body_frame_pose(sim.state)
     shapes = []
-    for body in sim.scene.bodies:
-        o, a = pose.get(body.name, (body.pose[:2], body.pose[2]))
+    for body, o, a in zip(sim.scene.bodies, origin, angle):
         c, s = math.cos(a), math.sin(a)
         rot = np.array([[c, -s], [s, c]])
         shapes.append((body.name, body.type, [1e3 * (poly @ rot.T + o) for poly in body.outlines]))
     return shapes
 
 
-def filmstrip(scene: Scene | str, duration_s: float, times_s: Iterable[float], axes) -> dict:
-    """Run an orienter scene, draw it at ``times_s`` into ``axes``; returns its outcomes."""
+def filmstrip(scene: Scene | str, duration_s: float, times_s: Iterable[float], axes,
+              window_mm: tuple[tuple[float, float], tuple[float, float]] = ((-50, 40), (-95, 25))
+              ) -> dict:
+    """Run an orienter scene, draw it at ``times_s`` into ``axes`` (x and y limits
+    ``window_mm``); returns its outcomes. Cups are blue when they start at angle 0, orange
+    when turned round."""
     from feeder_sim.run import run
     sim = Simulator(scene)
     first = {b.name: b.pose[2] for b in sim.scene.bodies if b.type == 'dynamic'}
@@ -248,8 +257,8 @@ def filmstrip(scene: Scene | str, duration_s: float, times_s: Iterable[float], a
                 ax.fill(poly[:, 0], poly[:, 1], **style)
         if spec.exit_position is not None and spec.exit_axis == (0.0, -1.0):
             ax.axhline(-1e3 * spec.exit_position, color='tab:green', ls=':', lw=0.8)
-        ax.set_xlim(-50, 40)
-        ax.set_ylim(-95, 25)
+        ax.set_xlim(*window_mm[0])
+        ax.set_ylim(*window_mm[1])
         ax.set_aspect('equal')
         ax.set_xticks([])
         ax.set_yticks([])
@@ -257,6 +266,29 @@ def filmstrip(scene: Scene | str, duration_s: float, times_s: Iterable[float], a
     return {'outcomes': result.summary['outcomes'], 'wall_s': wall,
             'wall_per_simulated_s': wall / duration_s,
             'snapshot_times_s': [t for t, _ in snaps]}
+
+
+def figure9(out: Path, duration_s: float = 6.0) -> dict:
+    """Fig. 9: the centre-partition orienter as a filmstrip of two strokes and the end."""
+    plt = _plt()
+    times = PARTITION_TIMES_S
+    fig, axes = plt.subplots(2, len(times) // 2, figsize=(9.0, 9.6), dpi=120)
+    data = filmstrip('orienter_partition', duration_s, times, axes.flat,
+                     window_mm=((-48, 32), (-80, 72)))
+    o = data['outcomes']
+    counts = ', '.join(f'{v} {k.replace("_", " ")}' for k, v in o['exit_orientations'].items()
+                       if v)
+    lanes = {'left': 0, 'right': 0}
+    for p in o['parts']:
+        if p['exit_point_m'] is not None:
+            lanes['left' if p['exit_point_m'][0] < _PARTITION_X_M else 'right'] += 1
+    data['lanes'] = lanes
+    axes[0, 0].set_ylabel(f'{o["parts_exited"]}/{len(o["parts"])} out ({counts or "none"})\n'
+                          f'left lane {lanes["left"]}, right lane {lanes["right"]}', fontsize=8)
+    _save(fig, out / 'fig9_partition_orienter.png',
+          'Fig. 9: cups oriented by a centre partition (blue: open end right, orange: open end '
+          'left; green: exit line)', fontsize=10)
+    return data
 
 
 def figure10(out: Path, duration_s: float = 4.5) -> dict:
@@ -282,7 +314,7 @@ def figure10(out: Path, duration_s: float = 4.5) -> dict:
 
 
 _BUILDERS: dict[str, Callable[[Path], dict]] = {'fig7': figure7, 'flip': flip, 'fig8': figure8,
-                                                 'fig10': figure10}
+                                                 'fig9': figure9, 'fig10': figure10}
 
 
 def paper(out_dir: str | os.PathLike, figures: Iterable[str] = FIGURES) -> dict:
