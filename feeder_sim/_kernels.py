@@ -355,14 +355,19 @@ def speed_bounds(velocity, omega, radius, dynamic):
 @numba.njit(**_JIT)
 def contact_rows(a, b, point, normal, gap, order, starts, position, v_end, w_end, v_pre, w_pre,
                  mu_s_body, mu_d_body, e_body, h, touch, max_rows, push_out, push_max, slop,
-                 collide_speed, slip_tol, friction_impulse):
+                 collide_speed, slip_tol, friction_impulse, piece_a, piece_b, piece_width,
+                 spec_depth, reach):
     """The per-contact part of ``TimeStepper._contacts`` in one pass (the numpy expressions it
     replaces are quoted; same operations in the same order, so the same bits).
 
     Contacts come as found at the midpoint configuration (``position``); ``order`` / ``starts``
     are their islands (``island_groups``). A contact is kept when its island is a pile
     (``2 * size > max_rows``), it touches (``gap <= touch``) or it would close its gap by the
-    end of the step (``gap + 0.5 * h * v_N_free <= touch``). Returns the kept indices, then per
+    end of the step (``gap + 0.5 * h * v_N_free <= touch``): a Newton row. A contact of a small
+    island kept for none of these is speculative when ``gap + allow <= reach`` (``allow`` =
+    ``spec_depth`` x the smaller width of its two pieces, ``reach`` the distance a point can
+    travel in the step): its row ``v'_N + (gap + allow) / h >= 0`` lets it close by at most
+    ``gap + allow`` before the next midpoint. Returns the kept indices, then per
     kept contact: ``dynamics.contact_set``'s tangent, r_a, r_b, mu_static, mu_dynamic,
     restitution; the free end-of-step velocities v_N, v_T (``v_end`` / ``w_end``); the
     pre-step slip v_T (``v_pre`` / ``w_pre``); pile, colliding, the normal rows' b, then
@@ -377,6 +382,8 @@ def contact_rows(a, b, point, normal, gap, order, starts, position, v_end, w_end
     vn_free = np.empty(n)
     vt_free = np.empty(n)
     keep = np.empty(n, np.int64)
+    allow = np.zeros(n)
+    spec = np.zeros(n, np.bool_)
     m = 0
     for i in range(n):
         ia, ib = a[i], b[i]
@@ -396,6 +403,14 @@ def contact_rows(a, b, point, normal, gap, order, starts, position, v_end, w_end
                 or gap[i] + 0.5 * h * vn_free[i] <= touch):
             keep[m] = i
             m += 1
+        else:
+            wa, wb = piece_width[piece_a[i]], piece_width[piece_b[i]]
+            d = spec_depth * (wa if wa < wb else wb)
+            if gap[i] + d <= reach:
+                allow[i] = d
+                spec[i] = True
+                keep[m] = i
+                m += 1
     keep = keep[:m]
     tangent = np.empty((m, 2))
     ra = np.empty((m, 2))
@@ -453,7 +468,7 @@ def contact_rows(a, b, point, normal, gap, order, starts, position, v_end, w_end
         # propagate NaN; numba's min / max return the first, hence the explicit forms.
         newton = vn_free[i] + rest[q] * (vn_pre if vn_pre < 0.0 or vn_pre != vn_pre else 0.0)
         if not pl:
-            b_n[q] = newton
+            b_n[q] = vn_free[i] + (g + allow[i]) / h if spec[i] else newton
         elif touching:
             depth = -g - slop
             depth = depth if depth > 0.0 or depth != depth else 0.0

@@ -4,10 +4,18 @@ Moreau's midpoint scheme: positions move half a step, contacts are found there, 
 frictional impulse LCP per island gives the end-of-step velocities, positions move the other
 half step with them (Moreau–Jean). In islands solved by pivoting a contact takes part when it
 touches at the midpoint or would close its gap by the end of the step, with Newton's law
-``v'_N + e min(v_N, 0) >= 0`` on the pre-step approach speed: a fast part stops short of a thin
-wall instead of tunnelling. The scheme lets a landing vertex sink by up to ``h |v_N| / 2``;
-that penetration is removed by a position projection after the step, never by a velocity
-bias, so a landing gains no energy. Piles (islands above ``direct_max_rows``, solved by PGS)
+``v'_N + e min(v_N, 0) >= 0`` on the pre-step approach speed. Contacts are found again only at
+the next midpoint, a whole step of travel later, so a contact of these islands that is within
+that reach but does not close by the end of the step gets a speculative row
+``v'_N + (gap + allow) / h >= 0``: its vertex sinks at most ``allow`` (half the narrow phase's
+depth window, ``speculative_depth`` x ``collision.DEPTH_FRACTION`` x the thinner piece) by the
+next midpoint, where the contact is then found on the face it entered. Without it a part that
+moves further than a thin wall's half thickness per step (10 mm per step at a 1 mm wall) is
+next seen past the wall's mid-plane, matched to its far face or missed, and goes through. The
+row is only set up where ``gap + allow`` is within the reach, so slow parts, whose reach is far
+below ``allow``, keep exactly their former contacts. The scheme lets a landing vertex sink by
+up to ``h |v_N| / 2``; that penetration is removed by a position projection after the step,
+never by a velocity bias, so a landing gains no energy. Piles (islands above ``direct_max_rows``, solved by PGS)
 keep speculative rows ``v'_N + 2 gap / h >= 0`` and a velocity push-out of deep penetration,
 capped at ``push_max_mps`` (a jammed queue left 0.4 mm deep was otherwise kicked at 0.8 m/s).
 
@@ -68,7 +76,7 @@ import numpy as np
 from feeder_sim import _kernels as K
 from feeder_sim import lcp
 from feeder_sim._kernels import island_groups
-from feeder_sim.collision import Contacts, evaluate_gaps, find_contacts
+from feeder_sim.collision import Contacts, DEPTH_FRACTION, evaluate_gaps, find_contacts
 from feeder_sim.dynamics import (
     assemble,
     BOX,
@@ -106,6 +114,13 @@ class TimeStepSettings:
     push_max_mps: float = 0.02     # cap on the push-out speed (piles): it stays in the
     #                                velocities, so uncapped a deep wedge (1/h times its depth)
     #                                throws parts apart
+    speculative_depth: float = 0.5  # small islands: a contact that does not touch or close
+    #                                by the end of the step may still close by the next
+    #                                midpoint, where contacts are found again; its approach is
+    #                                capped so that its vertex then sinks at most this
+    #                                fraction of the narrow phase's depth window
+    #                                (collision.DEPTH_FRACTION x the thinner piece): deeper,
+    #                                a thin wall's vertex is matched to its far face or missed
     slip_tol_mps: float = 1e-9     # |v_T| below which a contact is sticking
     lcp_tol: float = 1e-9          # lcp.residual the Dantzig path must reach
     direct_max_rows: int = 48      # islands with more LCP rows go to projected Gauss-Seidel
@@ -296,9 +311,9 @@ class TimeStepper:
         np.add(end.velocity, h * w.gravity, out=end.velocity, where=self._dyn_col)
         w.apply_prescribed_motion(end)
 
-        contacts = find_contacts(w.shapes, mid.position, mid.angle, self._dyn,
-                                 margin=self.margin(state, h))
-        report = self._contacts(contacts, state, mid, end, h) if contacts.n else None
+        margin = self.margin(state, h)
+        contacts = find_contacts(w.shapes, mid.position, mid.angle, self._dyn, margin=margin)
+        report = self._contacts(contacts, state, mid, end, h, margin) if contacts.n else None
 
         state.t = end.t
         # state.position[dyn] = mid.position[dyn] + 0.5 h end.velocity[dyn], and the angles
@@ -424,8 +439,8 @@ class TimeStepper:
 
     # ---------------------------------------------------------------------------------------
 
-    def _contacts(self, contacts, state: State, mid: State, end: State,
-                  h: float) -> StepContacts | None:
+    def _contacts(self, contacts, state: State, mid: State, end: State, h: float,
+                  reach_m: float) -> StepContacts | None:
         """Solve every island's impulse LCP; adds the velocity changes to ``end``."""
         w, st, stats = self.world, self.settings, self.stats
         # Small islands (solved exactly by pivoting) use the Moreau-Jean index set: a contact
@@ -436,7 +451,7 @@ class TimeStepper:
         # robustly at their size. (``_contact_rows_reference`` spells this out in numpy.)
         groups = island_groups(w.n, self._dyn, contacts.body_a, contacts.body_b)
         slip_tol = self._slip_tol(state, h)
-        rows = self._contact_rows(contacts, groups, state, mid, end, h, slip_tol)
+        rows = self._contact_rows(contacts, groups, state, mid, end, h, slip_tol, reach_m)
         keep = rows[0]
         if not len(keep):
             return None
@@ -487,20 +502,23 @@ class TimeStepper:
         return StepContacts(cs, p_n, p_t)
 
     def _contact_rows(self, contacts, groups: tuple, state: State, mid: State, end: State,
-                      h: float, slip_tol: float) -> tuple:
+                      h: float, slip_tol: float, reach_m: float) -> tuple:
         """Which contacts take part and their LCP rows, by ``_kernels.contact_rows``: (kept
         indices, tangent, r_a, r_b, mu_static, mu_dynamic, restitution, v_n_free, v_t_free,
-        v_t_pre, pile, colliding, b_n, box, mu_lo, mu_hi, smallest gap)."""
+        v_t_pre, pile, colliding, b_n, box, mu_lo, mu_hi, smallest gap). ``reach_m`` is the
+        distance a point can travel in the step (the contact search's margin)."""
         w, st = self.world, self.settings
         c = contacts
         return K.contact_rows(
             c.body_a, c.body_b, c.point, c.normal, c.gap, groups[0], groups[1], mid.position,
             end.velocity, end.omega, state.velocity, state.omega, w.mu_static, w.mu_dynamic,
             w.restitution, h, st.touch_m, st.direct_max_rows, st.push_out, st.push_max_mps,
-            st.slop_m, -2.0 * self._g * h, slip_tol, bool(self.spec.friction_impulse))
+            st.slop_m, -2.0 * self._g * h, slip_tol, bool(self.spec.friction_impulse),
+            c.piece_a, c.piece_b, w.shapes.derived.piece_width,
+            st.speculative_depth * DEPTH_FRACTION, reach_m)
 
     def _contact_rows_reference(self, contacts, groups: tuple, state: State, mid: State,
-                                end: State, h: float, slip_tol: float) -> tuple:
+                                end: State, h: float, slip_tol: float, reach_m: float) -> tuple:
         """``_contact_rows`` in numpy (``contact_set``, ``contact_velocities``,
         ``friction_rows``): the reference the kernel is checked against (test/test_pile.py)."""
         w, st = self.world, self.settings
@@ -515,10 +533,15 @@ class TimeStepper:
         size = np.empty(contacts.n, np.int64)
         size[order0] = np.repeat(lens0, lens0)
         pile = 2 * size > st.direct_max_rows
-        keep = np.flatnonzero(pile | (gap <= st.touch_m)
-                              | (gap + 0.5 * h * v_n_free <= st.touch_m))
+        newton_set = pile | (gap <= st.touch_m) | (gap + 0.5 * h * v_n_free <= st.touch_m)
+        width = w.shapes.derived.piece_width
+        allow = (st.speculative_depth * DEPTH_FRACTION) * np.minimum(
+            width[contacts.piece_a], width[contacts.piece_b])
+        spec = ~newton_set & (gap + allow <= reach_m)
+        keep = np.flatnonzero(newton_set | spec)
         contacts, cs = contacts.take(keep), cs.subset(keep)
         v_n_free, v_t_free, gap, pile = v_n_free[keep], v_t_free[keep], gap[keep], pile[keep]
+        allow, spec = allow[keep], spec[keep]
         v_n_pre, v_t_pre = K.contact_velocities(contacts.body_a, contacts.body_b,
                                                 contacts.normal, cs.r_a, cs.r_b,
                                                 state.velocity, state.omega)
@@ -527,7 +550,7 @@ class TimeStepper:
         newton = v_n_free + cs.restitution * np.minimum(v_n_pre, 0.0)
         push = np.minimum(st.push_out * np.maximum(-gap - st.slop_m, 0.0) * 2.0 / h,
                           st.push_max_mps)
-        b_n = np.where(~pile, newton,
+        b_n = np.where(~pile, np.where(spec, v_n_free + (gap + allow) / h, newton),
                        np.where(touching, newton - push, v_n_free + 2.0 * gap / h))
         friction, mu_lo, mu_hi = friction_rows(cs, v_t_pre, colliding,
                                                self.spec.friction_impulse, slip_tol)
