@@ -279,6 +279,9 @@ class TimeStepper:
         self._g = float(np.linalg.norm(world.gravity))
         self._warm = _Warm(len(world.shapes.vertices))
         self._projected = np.zeros(0, bool)
+        # contacts of this step left out of the velocity solve, with the midpoint positions
+        # (for the projection; see _with_spare)
+        self._spare: tuple[Contacts, np.ndarray] | None = None
         self._geo: _IslandGeometry | None = None
 
     def margin(self, state: State, h: float) -> float:
@@ -355,18 +358,28 @@ class TimeStepper:
         ``lcp_tol`` is solved again by ``lcp.solve`` and its whole ladder, as before.
         """
         w, st = self.world, self.settings
-        # gaps at the end of the step of the contacts that may be projected (bits as
-        # evaluate_gaps); islands with a deep contact hold nothing but such contacts
-        idx = np.flatnonzero(mask)
-        c = cs.contacts
         topo = w.shapes.derived
-        gap = np.zeros(c.n)
-        gap[idx] = K.feature_gaps(idx, c.vertex_a, c.edge_b, w.shapes.vertices,
-                                  w.shapes.normals, topo.vertex_body, state.position,
-                                  np.cos(state.angle), np.sin(state.angle))
+        cos, sin = np.cos(state.angle), np.sin(state.angle)
+
+        def end_gaps(cs: ContactSet, mask: np.ndarray) -> np.ndarray:
+            # gaps at the end of the step of the contacts that may be projected (bits as
+            # evaluate_gaps); islands with a deep contact hold nothing but such contacts
+            idx = np.flatnonzero(mask)
+            c = cs.contacts
+            gap = np.zeros(c.n)
+            gap[idx] = K.feature_gaps(idx, c.vertex_a, c.edge_b, w.shapes.vertices,
+                                      w.shapes.normals, topo.vertex_body, state.position,
+                                      cos, sin)
+            return gap
+
+        gap = end_gaps(cs, mask)
         deep = gap < -st.projection_slop_m
         if not deep.any():
             return
+        if self._spare is not None:
+            cs, mask = self._with_spare(cs, mask)
+            gap = end_gaps(cs, mask)
+            deep = gap < -st.projection_slop_m
         geo = self._island_geometry(cs)
         order, starts = geo.order, geo.starts
         k = len(order)
@@ -418,6 +431,10 @@ class TimeStepper:
         deep = (gap < -st.projection_slop_m) & mask
         if not deep.any():
             return
+        if self._spare is not None:
+            cs, mask = self._with_spare(cs, mask)
+            gap, _ = evaluate_gaps(w.shapes, cs.contacts, state.position, state.angle)
+            deep = (gap < -st.projection_slop_m) & mask
         for bodies, idx in islands(w, cs):
             if not deep[idx].any():
                 continue
@@ -428,6 +445,34 @@ class TimeStepper:
             move = cap_moves(move, self._radius[bodies], st.projection_reach * depth)
             state.position[bodies] += move[:, :2]
             state.angle[bodies] += move[:, 2]
+
+    def _outside_piles(self, spare: Contacts, mid_position: np.ndarray, pile_a: np.ndarray,
+                       pile_b: np.ndarray):
+        """``(spare, mid_position)`` without the contacts of bodies in a pile (piles are
+        not projected), or None when nothing is left."""
+        in_pile = np.zeros(self.world.n, bool)
+        in_pile[pile_a] = True
+        in_pile[pile_b] = True
+        in_pile &= self._dyn
+        ok = np.flatnonzero(~(in_pile[spare.body_a] | in_pile[spare.body_b]))
+        return (_take(spare, ok), mid_position) if len(ok) else None
+
+    def _with_spare(self, cs: ContactSet, mask: np.ndarray) -> tuple[ContactSet, np.ndarray]:
+        """``cs`` and ``mask`` with the contacts found this step but left out of the velocity
+        solve (apart, and not closing): the projection must not push a body through them.
+        A part resting on two points that the step saw touching at only one of them was
+        projected out at that one and rotated into the other, every other step."""
+        if self._spare is None:
+            return cs, mask
+        spare, mid_position = self._spare
+        extra = contact_set(self.world, State(0.0, mid_position, None, None, None), spare)
+        c1, c2 = cs.contacts, extra.contacts
+        both = ContactSet(Contacts(*(np.concatenate([getattr(c1, f), getattr(c2, f)])
+                                     for f in _CONTACT_FIELDS)),
+                          *(np.concatenate([getattr(cs, f), getattr(extra, f)])
+                            for f in ('tangent', 'r_a', 'r_b', 'mu_static', 'mu_dynamic',
+                                      'restitution')))
+        return both, np.concatenate([mask, np.ones(spare.n, bool)])
 
     def _island_geometry(self, cs: ContactSet) -> _IslandGeometry:
         """The islands of ``cs`` and its contacts' geometry in island order (cached for the
@@ -453,9 +498,13 @@ class TimeStepper:
         slip_tol = self._slip_tol(state, h)
         rows = self._contact_rows(contacts, groups, state, mid, end, h, slip_tol, reach_m)
         keep = rows[0]
+        self._spare = None
         if not len(keep):
             return None
         if len(keep) < contacts.n:
+            left_out = np.ones(contacts.n, bool)
+            left_out[keep] = False
+            self._spare = (_take(contacts, np.flatnonzero(left_out)), mid.position)
             contacts = _take(contacts, keep)
             groups = None       # dropping contacts may split islands
         (tangent, r_a, r_b, mu_s, mu_d, restitution, _, v_t_free, v_t_pre, pile, colliding, b_n,
@@ -467,6 +516,8 @@ class TimeStepper:
         a, b = c.body_a, c.body_b
         stats.max_penetration_m = max(stats.max_penetration_m, float(-gap_min))
         self._projected = ~pile
+        if self._spare is not None and pile.any():
+            self._spare = self._outside_piles(*self._spare, a[pile], b[pile])
         keys = self._warm.key(c)
         p_n = np.zeros(c.n)
         p_t = np.zeros(c.n)
