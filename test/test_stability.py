@@ -17,9 +17,6 @@ TEST_PARAMS = {'pile_500': {'n_parts': 60}}
 # Cells that miss a criterion because of a physics bug (reported with a reproducer); strict,
 # so a fix turns them into failures here until the mark is removed.
 KNOWN_BUGS = {
-    ('heavy_on_light', TS): 'at 1e6:1 the light boxes are kicked sideways by mm after 0.78 s',
-    ('thrown_at_thin_wall', TS): 'at 10 mm per step a flat part tunnels through the 1 mm '
-                                 'wall and a spinning one ends with corners through it',
     ('thrown_at_thin_wall', ED): 'with a 10 ms largest step no collision is found: the part '
                                  'flies through the wall',
     ('newton_cradle', ED): 'a block meeting an identical block with exactly aligned corners '
