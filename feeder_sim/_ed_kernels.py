@@ -90,35 +90,55 @@ def _poses(t, t0, kind, index, pos0, ang0, vel0, om0, phi0, phi1, dr_u, dr_base,
 
 
 @numba.njit(**_JIT)
-def _vertex_piece_gap(pos, ang, vbody, local, wedge, pbody, start, end, verts, normals):
-    """Signed distance (m) of a corner from a convex piece: the largest over the piece's edge
-    lines, leaving out the lines the corner lies flush on (see ``_flush``)."""
+def _vertex_piece_gap(pos, ang, vbody, local, pbody, start, end, verts, normals):
+    """Largest signed distance (m) of a corner from a convex piece's edge lines."""
     px, py = world_point(pos, ang, vbody, local)
     c, s = math.cos(ang[pbody]), math.sin(ang[pbody])
     best = -np.inf
-    every = -np.inf
     for j in range(start, end):
         qx = pos[pbody, 0] + c * verts[j, 0] - s * verts[j, 1]
         qy = pos[pbody, 1] + s * verts[j, 0] + c * verts[j, 1]
         nx = c * normals[j, 0] - s * normals[j, 1]
         ny = s * normals[j, 0] + c * normals[j, 1]
         d = nx * (px - qx) + ny * (py - qy)
-        every = max(every, d)
-        if d > best and not (abs(d) <= FLUSH_M and _flush(ang[vbody], wedge, nx, ny)):
+        if d > best:
             best = d
-    return best if best > -np.inf else every
+    return best
 
 
 @numba.njit(**_JIT)
-def _flush(angle, wedge, nx, ny):
+def _gap_off_flush(pos, ang, vbody, local, wedge, pbody, start, end, verts, normals, best):
+    """Collision gap (m) of a corner whose largest distance ``best`` from a convex piece's
+    edge lines is within FLUSH_M of 0: the largest distance from the lines it does not lie
+    flush on (see ``_flush``), or ``best`` if it lies flush on every one.
+
+    Leaving out lines within FLUSH_M changes nothing when the largest distance is farther
+    than that from 0, so the callers test ``abs(best) <= FLUSH_M`` inline and call this only
+    then: the plain largest distance is the hot loop of every step."""
+    px, py = world_point(pos, ang, vbody, local)
+    ca, sa = math.cos(ang[vbody]), math.sin(ang[vbody])
+    c, s = math.cos(ang[pbody]), math.sin(ang[pbody])
+    inner = -np.inf
+    for j in range(start, end):
+        qx = pos[pbody, 0] + c * verts[j, 0] - s * verts[j, 1]
+        qy = pos[pbody, 1] + s * verts[j, 0] + c * verts[j, 1]
+        nx = c * normals[j, 0] - s * normals[j, 1]
+        ny = s * normals[j, 0] + c * normals[j, 1]
+        d = nx * (px - qx) + ny * (py - qy)
+        if d > inner and not (abs(d) <= FLUSH_M and _flush(ca, sa, wedge, nx, ny)):
+            inner = d
+    return inner if inner > -np.inf else best
+
+
+@numba.njit(**_JIT)
+def _flush(c, s, wedge, nx, ny):
     """True if the corner's piece lies on the inner side of the edge line (normal n) through
     it: both edges leaving the corner run along the line or into the other piece.
 
     Such a line does not show the corner outside: a block sliding face-on into an identical
     one with aligned corners has every corner exactly on the line of a side face of the other
     block while the faces overlap, so the largest distance stays 0 and the overlap is never
-    seen."""
-    c, s = math.cos(angle), math.sin(angle)
+    seen. ``c, s``: cosine and sine of the corner's body angle."""
     for i in range(2):
         ex = c * wedge[i, 0] - s * wedge[i, 1]
         ey = s * wedge[i, 0] + c * wedge[i, 1]
@@ -132,8 +152,12 @@ def candidate_gaps(pos, ang, cv_body, cv_local, cp_body, cp_start, cp_end, cv_we
                    verts, normals, out):
     """Gap (m) of every candidate vertex against its piece: > 0 outside, < 0 inside."""
     for i in range(cv_body.shape[0]):
-        out[i] = _vertex_piece_gap(pos, ang, cv_body[i], cv_local[i], cv_wedge[i], cp_body[i],
-                                   cp_start[i], cp_end[i], verts, normals)
+        d = _vertex_piece_gap(pos, ang, cv_body[i], cv_local[i], cp_body[i], cp_start[i],
+                              cp_end[i], verts, normals)
+        if abs(d) <= FLUSH_M:
+            d = _gap_off_flush(pos, ang, cv_body[i], cv_local[i], cv_wedge[i], cp_body[i],
+                               cp_start[i], cp_end[i], verts, normals, d)
+        out[i] = d
 
 
 @numba.njit(**_JIT)
@@ -210,42 +234,133 @@ def _events(t, t0, bodies, drives, contacts, cands, verts, normals, scales, pos,
         g[j] = 1.0 - params[i]
         j += 1
     for i in range(cv_body.shape[0]):
-        g[j] = _vertex_piece_gap(pos, ang, cv_body[i], cv_local[i], cv_wedge[i], cp_body[i],
-                                 cp_start[i], cp_end[i], verts, normals) / gap_scale
+        d = _vertex_piece_gap(pos, ang, cv_body[i], cv_local[i], cp_body[i], cp_start[i],
+                              cp_end[i], verts, normals)
+        if abs(d) <= FLUSH_M:
+            d = _gap_off_flush(pos, ang, cv_body[i], cv_local[i], cv_wedge[i], cp_body[i],
+                               cp_start[i], cp_end[i], verts, normals, d)
+        g[j] = d / gap_scale
         j += 1
 
 
 @numba.njit(**_JIT)
-def _within_reach(h, bodies, drives, pos, ang, vel, om, reach):
-    """True if no body can get farther than its reach from the candidates' anchor in h."""
+def _speed_bounds(h, bodies, drives, vel, om, speed, turn):
+    """Every body's largest translational speed (m/s) and turning rate (rad/s) over the next
+    h of a closed-form phase, into ``speed`` and ``turn``."""
     kind, index, _, _, _, _, phi0, phi1 = bodies
     _, _, dr_amp, dr_w, _, _ = drives
-    anchor_pos, anchor_ang, radius, limit = reach
     nd = dr_amp.shape[0]
     for i in range(kind.shape[0]):
         k = kind[i]
         if k == FIXED:
-            continue
-        dx, dy = pos[i, 0] - anchor_pos[i, 0], pos[i, 1] - anchor_pos[i, 1]
-        moved = math.sqrt(dx * dx + dy * dy) + abs(ang[i] - anchor_ang[i]) * radius[i]
-        if k == DRIVEN:
-            d = index[i]
-            speed = abs(dr_amp[d] * dr_w[d])
+            speed[i], turn[i] = 0.0, 0.0
+        elif k == DRIVEN:
+            speed[i], turn[i] = abs(dr_amp[index[i]] * dr_w[index[i]]), 0.0
         else:
-            speed = math.sqrt(vel[i, 0] ** 2 + vel[i, 1] ** 2) + abs(om[i]) * radius[i] + h * (
+            v = math.sqrt(vel[i, 0] ** 2 + vel[i, 1] ** 2) + h * (
                 math.sqrt(phi0[i, 0] ** 2 + phi0[i, 1] ** 2))
             for d in range(nd):
                 change = min(2.0, h * abs(dr_w[d])) * abs(dr_amp[d] * dr_w[d])
-                speed += change * math.sqrt(phi1[i, 0, d] ** 2 + phi1[i, 1, d] ** 2)
-        if moved + h * speed > limit:
+                v += change * math.sqrt(phi1[i, 0, d] ** 2 + phi1[i, 1, d] ** 2)
+            speed[i], turn[i] = v, abs(om[i])
+
+
+@numba.njit(**_JIT)
+def _within_reach(h, kind, pos, ang, speed, turn, reach):
+    """True if no body can get farther than its reach from the candidates' anchor in h."""
+    anchor_pos, anchor_ang, radius, limit = reach
+    for i in range(kind.shape[0]):
+        if kind[i] == FIXED:
+            continue
+        dx, dy = pos[i, 0] - anchor_pos[i, 0], pos[i, 1] - anchor_pos[i, 1]
+        moved = math.sqrt(dx * dx + dy * dy) + abs(ang[i] - anchor_ang[i]) * radius[i]
+        if moved + h * (speed[i] + turn[i] * radius[i]) > limit:
             return False
     return True
+
+
+@numba.njit(**_JIT)
+def guarded_step(h, pos, ang, speed, turn, cands, g, first, offset, gap_scale):
+    """The largest step <= h over which no candidate corner can travel, relative to its piece,
+    farther than its gap plus half the piece's minimum width (conservative advancement).
+
+    A corner is at least its gap away from the piece, measured in the piece's frame, and must
+    travel that far to reach it and then the piece's width to pass through it. Within such
+    a step it can neither pass through a piece nor enter one deeper than a quarter of its
+    width and leave again between the step's ends, where the events are tested. A corner far
+    from every piece or slow does not shorten the step.
+
+    ``speed`` and ``turn`` bound every body's translational speed (m/s) and turning rate
+    (rad/s) over h; the candidates' event functions at the step start are ``g[first:]`` with
+    ``offset[first:]`` added (see ``event_offsets``), in units of ``gap_scale`` (m)."""
+    cv_body, cv_local, cp_body, _, _, _, cp_width = cands
+    for i in range(cv_body.shape[0]):
+        a, b = cv_body[i], cp_body[i]
+        arm = math.sqrt(cv_local[i, 0] ** 2 + cv_local[i, 1] ** 2)
+        # Speed of the corner in the piece's frame: its own, the piece's, and the piece's
+        # turning at the corner's distance from the piece's origin, which grows in the step
+        # (bounded without trigonometry: this runs every step).
+        closing = speed[a] + turn[a] * arm + speed[b]
+        reach = math.sqrt((pos[a, 0] - pos[b, 0]) ** 2 + (pos[a, 1] - pos[b, 1]) ** 2) + arm
+        rel = closing + turn[b] * (reach + h * closing)
+        travel = max(g[first + i] + offset[first + i], 0.0) * gap_scale + 0.5 * cp_width[i]
+        if rel * h > travel:
+            h = travel / rel
+    return h
+
+
+@numba.njit(**_JIT)
+def guarded_integrator_step(h, pos, ang, vel, om, dydt, dyn, drive_acc, cands, g, first,
+                            offset, gap_scale):
+    """``guarded_step`` for an integrator step of h from (pos, ang, vel, om): speeds bounded
+    from the step start's velocities and accelerations (``dydt`` of the dynamic bodies
+    ``dyn``, ``drive_acc`` (m/s^2) for the others), as the candidates' reach is."""
+    n, nd = pos.shape[0], dyn.shape[0]
+    speed = np.empty(n)
+    turn = np.empty(n)
+    for i in range(n):
+        speed[i] = math.sqrt(vel[i, 0] ** 2 + vel[i, 1] ** 2) + h * drive_acc[i]
+        turn[i] = abs(om[i])
+    for q in range(nd):
+        i = dyn[q]
+        speed[i] += h * math.sqrt(dydt[3 * nd + 2 * q] ** 2 + dydt[3 * nd + 2 * q + 1] ** 2)
+        turn[i] += h * abs(dydt[5 * nd + q])
+    return guarded_step(h, pos, ang, speed, turn, cands, g, first, offset, gap_scale)
+
+
+@numba.njit(**_JIT)
+def _guard_scales(pos, cands, limit):
+    """Half the smallest piece width of the candidates (m) and a bound on any candidate
+    corner's distance from its piece's origin (m) while no body moves farther than ``limit``
+    (m) from where it is now."""
+    cv_body, cv_local, cp_body, _, _, _, cp_width = cands
+    half_width, reach = np.inf, 0.0
+    for i in range(cv_body.shape[0]):
+        a, b = cv_body[i], cp_body[i]
+        arm = math.sqrt(cv_local[i, 0] ** 2 + cv_local[i, 1] ** 2)
+        d = math.sqrt((pos[a, 0] - pos[b, 0]) ** 2 + (pos[a, 1] - pos[b, 1]) ** 2) + arm
+        half_width, reach = min(half_width, 0.5 * cp_width[i]), max(reach, d + 4.0 * limit)
+    return half_width, reach
+
+
+@numba.njit(**_JIT)
+def _slow(h, speed, turn, radius, half_width, reach):
+    """True if no candidate corner can move half the thinnest candidate piece's width relative
+    to it within h: then ``guarded_step`` cannot shorten the step, and this costs a pass over
+    the bodies instead of one over the candidates."""
+    fastest, turning = 0.0, 0.0
+    for i in range(speed.shape[0]):
+        fastest = max(fastest, speed[i] + turn[i] * radius[i])
+        turning = max(turning, turn[i])
+    return (2.0 * fastest + turning * (reach + 2.0 * h * fastest)) * h <= half_width
 
 
 @numba.njit(**_JIT)
 def advance(t0, t_end, h, threshold, n_events, bodies, drives, contacts, cands, verts,
             normals, scales, reach, pos, ang, vel, om, dvel_drive):
     """Step a closed-form phase from t0 towards t_end in steps of h, watching the events.
+    A step is shortened where a corner could otherwise pass through a piece unseen
+    (``guarded_step``).
 
     An event fires when its function drops below ``-threshold`` during a step it started at or
     above it; the earliest crossing is then located by Illinois regula falsi to the last bit of
@@ -265,9 +380,18 @@ def advance(t0, t_end, h, threshold, n_events, bodies, drives, contacts, cands, 
     offset = event_offsets(g_lo, cands[0].shape[0], threshold)
     tp = t0
     steps = 0
+    n_bodies = pos.shape[0]
+    speed = np.empty(n_bodies)
+    turn = np.empty(n_bodies)
+    first = n_events - cands[0].shape[0]
+    # Bodies stay within the reach's limit of the anchor, where they were at most that far.
+    half_width, corner_reach = _guard_scales(pos, cands, reach[3])
     while tp < t_end - 1e-15:
         dt = min(h, t_end - tp)
-        if not _within_reach(dt, bodies, drives, pos, ang, vel, om, reach):
+        _speed_bounds(dt, bodies, drives, vel, om, speed, turn)
+        if not _slow(dt, speed, turn, reach[2], half_width, corner_reach):
+            dt = guarded_step(dt, pos, ang, speed, turn, cands, g_lo, first, offset, scales[2])
+        if not _within_reach(dt, bodies[0], pos, ang, speed, turn, reach):
             _events(tp, t0, bodies, drives, contacts, cands, verts, normals, scales, pos, ang,
                     vel, om, acc_drive, dvel_drive, g_hi)
             return REFRESH, tp, steps
@@ -717,8 +841,12 @@ def _mode_rhs(t, y, spec, pos, ang, vel, om, acc, dydt, g, f):
         j += 1
     cv_body, cv_local, cp_body, cp_start, cp_end, cv_wedge, _ = cands
     for i in range(cv_body.shape[0]):
-        g[j] = _vertex_piece_gap(pos, ang, cv_body[i], cv_local[i], cv_wedge[i], cp_body[i],
-                                 cp_start[i], cp_end[i], verts, normals) / gap_scale
+        d = _vertex_piece_gap(pos, ang, cv_body[i], cv_local[i], cp_body[i], cp_start[i],
+                              cp_end[i], verts, normals)
+        if abs(d) <= FLUSH_M:
+            d = _gap_off_flush(pos, ang, cv_body[i], cv_local[i], cv_wedge[i], cp_body[i],
+                               cp_start[i], cp_end[i], verts, normals, d)
+        g[j] = d / gap_scale
         j += 1
 
 

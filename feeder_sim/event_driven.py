@@ -169,6 +169,7 @@ class _Mode:
     candidates: _Candidates | None = None
     phase: _Phase | None = None   # closed-form description, if the mode has one
     spec: tuple | None = None     # compiled right-hand side, when integrated and supported
+    drive_acc: np.ndarray | None = None   # (n,) largest drive acceleration (m/s^2), once used
 
 
 def _with_geometry(world: World, features: Contacts, state: State) -> ContactSet:
@@ -468,12 +469,13 @@ class EventDriven:
         y0 = self._pack(state)
         self._refresh_candidates(state, h)
         k0, g0, f0 = self._evaluate(t0, y0, scratch)
+        offset = kern.event_offsets(g0, self._mode.candidates.n, _EVENT_THRESHOLD)
+        h = self._guarded_step(state, k0, h, g0, offset)
         while True:
             y1, err, k1, g1, f1 = self._dopri_step(t0, y0, h, k0, scratch)
             if err <= 1.0 or h < 1e-14:
                 break
             h *= max(0.2, 0.9 * err ** -0.2)
-        offset = kern.event_offsets(g0, self._mode.candidates.n, _EVENT_THRESHOLD)
         hit = (g1 + offset < 0.0) & (g0 + offset >= 0.0)
         factor = 5.0 if err == 0 else min(5.0, max(0.2, 0.9 * err ** -0.2))
         if hit.any():
@@ -488,6 +490,30 @@ class EventDriven:
         self._h = min(h * factor, self.h_max())
         self.stats.steps += 1
         return False
+
+    def _guarded_step(self, state: State, k0: np.ndarray, h: float, g0: np.ndarray,
+                      offset: np.ndarray) -> float:
+        """``h`` shortened so that no corner can pass through a piece within the step
+        (:func:`feeder_sim._ed_kernels.guarded_step`)."""
+        mode = self._mode
+        cand = mode.candidates
+        if not cand.n:
+            return h
+        if mode.drive_acc is None:
+            mode.drive_acc = self._drive_accelerations()
+        return kern.guarded_integrator_step(h, state.position, state.angle, state.velocity,
+                                            state.omega, k0, self._dyn, mode.drive_acc,
+                                            cand.arrays, g0, len(g0) - cand.n, offset,
+                                            _GAP_SCALE_M)
+
+    def _drive_accelerations(self) -> np.ndarray:
+        """(n,) every body's largest drive acceleration A (2 pi f)^2 (m/s^2), 0 undriven."""
+        w = self.world
+        acc = np.zeros(w.n)
+        for i in w.driven:
+            drive = w.drives[i]
+            acc[i] = drive.amplitude_m * (2.0 * math.pi * drive.frequency_hz) ** 2
+        return acc
 
     def _locate(self, t0: float, y0: np.ndarray, k0: np.ndarray, h: float, g0: np.ndarray,
                 g1: np.ndarray, f1: np.ndarray, y1: np.ndarray, hit: np.ndarray,
