@@ -25,8 +25,8 @@ Phases are followed in one of two ways:
   one least-squares solve at the phase start gives every body's acceleration
   ``phi0 + phi1 s(t)`` and every contact force ``f0 + f1 s(t)``; positions, velocities,
   forces and the transmitted impulses follow exactly from the drives' sinusoids. Nothing is
-  integrated: the events are evaluated at the ends of steps of the largest step size and a
-  crossing is located by Illinois regula falsi on the exact state.
+  integrated: the events are evaluated at the ends of steps of the largest step size (or
+  shorter, see below) and a crossing is located by Illinois regula falsi on the exact state.
 * **Integrated** otherwise (a body rotating on a corner, bodies pressing on each other): a
   Dormand–Prince 5(4) integrator with error control follows the held mode, and an event is
   located by Illinois regula falsi on full integrator steps from the step start. The
@@ -38,8 +38,16 @@ The kernels are in :mod:`feeder_sim._ed_kernels`. Candidate collisions are the a
 of every piece against every other piece whose bounding box lay within a margin when they were
 detected; they are detected again only when a body may have moved half that margin since (in
 closed form from a bound on the exact velocities, when integrating from a heuristic reach per
-step). The impulse and force LCPs first try the final active set of the last pivoting solve of
-a problem of the same shape and keep it when the LCP residual accepts it: the events of a
+step). A collision is a candidate's gap (the corner's largest signed distance from the piece's
+edge lines) dropping below zero; lines the corner lies flush on with its own piece on their
+inner side are left out, or blocks meeting face-on with aligned corners, every corner on the
+line of a side face of the other block, would never show a negative gap. No step lets a
+corner travel, relative to a candidate piece, farther than its gap plus half the piece's
+minimum width (conservative advancement): a fast part cannot pass through a thin wall between
+two event tests, and a slow or distant one does not shorten the step.
+
+The impulse and force LCPs first try the final active set of the last pivoting solve of a
+problem of the same shape and keep it when the LCP residual accepts it: the events of a
 periodic motion pose nearly the same problems every cycle.
 
 Parallel contacts between the same two bodies (an edge lying on an edge) share their loads in
