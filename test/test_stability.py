@@ -14,14 +14,10 @@ BOTH = (TS, ED)
 # Smaller variants where the report uses bigger ones.
 TEST_PARAMS = {'pile_500': {'n_parts': 60}}
 
-# Cells that miss a criterion because of a physics bug (reported with a reproducer); strict,
-# so a fix turns them into failures here until the mark is removed.
-KNOWN_BUGS = {
-    ('thrown_at_thin_wall', ED): 'with a 10 ms largest step no collision is found: the part '
-                                 'flies through the wall',
-    ('newton_cradle', ED): 'a block meeting an identical block with exactly aligned corners '
-                           'face-on is not seen (no collision)',
-}
+# Cells that miss a criterion because of a physics bug, as (scene, method): reason (with a
+# reproducer); strict, so a fix turns them into failures here until the mark is removed.
+# None at present.
+KNOWN_BUGS: dict[tuple[str, str], str] = {}
 
 
 def methods(key, extra=()):
