@@ -27,6 +27,12 @@ def _outcomes(scene, duration_s=DURATION_S):
     return sim, out
 
 
+def _without(scene_name, body_name):
+    """A shipped scene with one of its bodies taken out."""
+    scene = load_scene(scene_name)
+    return replace(scene, bodies=tuple(b for b in scene.bodies if b.name != body_name))
+
+
 def _inside_the_machine(sim):
     """No cup escaped through a wall: every one is in the chute, the bin or on the track."""
     com = sim.state.position[sim.part_indices]
@@ -62,9 +68,7 @@ def test_short_hook_catches_a_cup_and_the_queue_jams():
 @pytest.mark.timeout(300)
 def test_without_the_hook_a_cup_arriving_open_end_first_leaves_open_end_down():
     """The control: the orientation comes from the hook, not from the drop."""
-    scene = load_scene('orienter_hook')
-    scene = replace(scene, bodies=tuple(b for b in scene.bodies if b.name != 'hook'))
-    _, out = _outcomes(scene, 1.2)
+    _, out = _outcomes(_without('orienter_hook', 'hook'), 1.2)
     cup0 = out['parts'][0]
     assert cup0['exit_orientation'] == 'open_end_down', cup0
 
@@ -111,9 +115,7 @@ def test_partition_orients_cups_arriving_either_way():
 @pytest.mark.timeout(300)
 def test_without_the_partition_a_cup_falls_through_lying_on_its_side():
     """The control: the orientation comes from the partition, not from the fall."""
-    scene = load_scene('orienter_partition')
-    scene = replace(scene, bodies=tuple(b for b in scene.bodies if b.name != 'partition'))
-    _, out = _outcomes(scene, 1.0)
+    _, out = _outcomes(_without('orienter_partition', 'partition'), 1.0)
     cup0 = out['parts'][0]
     assert cup0['exit_orientation'] == 'other', cup0
     assert abs(np.sin(cup0['exit_angle_rad'])) < 0.5, cup0
