@@ -15,9 +15,12 @@ next seen past the wall's mid-plane, matched to its far face or missed, and goes
 row is only set up where ``gap + allow`` is within the reach, so slow parts, whose reach is far
 below ``allow``, keep exactly their former contacts. The scheme lets a landing vertex sink by
 up to ``h |v_N| / 2``; that penetration is removed by a position projection after the step,
-never by a velocity bias, so a landing gains no energy. Piles (islands above ``direct_max_rows``, solved by PGS)
-keep speculative rows ``v'_N + 2 gap / h >= 0`` and a velocity push-out of deep penetration,
-capped at ``push_max_mps`` (a jammed queue left 0.4 mm deep was otherwise kicked at 0.8 m/s).
+never by a velocity bias, so a landing gains no energy. The projection respects every contact
+of the step outside piles, also those left out of the impulse problem, and moves no point of a
+body more than twice its island's summed overlap. Piles (islands above ``direct_max_rows``,
+solved by PGS) keep speculative rows ``v'_N + 2 gap / h >= 0`` and a velocity push-out of deep
+penetration, capped at ``push_max_mps`` (a jammed queue left 0.4 mm deep was otherwise kicked
+at 0.8 m/s).
 
 Friction follows Kawachi: static bounds ``mu_s p_N`` when the pre-step slip is zero; when it
 slides, a one-sided bound ``mu_d p_N`` that stops the slip but never reverses it. A static
