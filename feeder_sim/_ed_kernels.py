@@ -27,6 +27,8 @@ import math
 import numba
 import numpy as np
 
+from feeder_sim._kernels import dantzig as _dantzig
+
 _JIT = {'cache': True, 'nogil': True, 'error_model': 'numpy'}
 
 FIXED, DRIVEN, MOVING = 0, 1, 2
@@ -634,6 +636,141 @@ def lcp_known_pattern(W, b_full, friction, mu_lo, mu_hi, slave, pattern):
         return P @ x, x, b, np.inf
     x = lcp_with_pattern(A, b, normal_of, lo, hi, pattern)
     return P @ x, x, A @ x + b, lcp_residual(A, b, x, normal_of, lo, hi)
+
+
+@numba.njit(**_JIT)
+def lcp_dantzig(W, b_full, friction, mu_lo, mu_hi, slave):
+    """Solve the contact LCP from scratch by the compiled Baraff-Dantzig pivoting
+    (:func:`feeder_sim._kernels.dantzig`, a port of ``lcp.solve``'s first method):
+    ``(stacked solution, x, w, residual, pivots, abort codes)`` with the reduced problem
+    ``(A, b, normal_of, lo, hi)`` for the caller's fallback when the residual misses."""
+    A, P, rows, normal_of, lo, hi = reduce_lcp(W, friction, mu_lo, mu_hi, slave)
+    b = b_full[rows]
+    m = b.shape[0]
+    x, pivots, code, retry = _dantzig(A, b, normal_of, lo, hi, 50 * m + 50)
+    res = lcp_residual(A, b, x, normal_of, lo, hi)
+    return P @ x, x, A @ x + b, res, pivots, (code, retry), (A, P, b, normal_of, lo, hi)
+
+
+@numba.njit(**_JIT)
+def closed_form_mode(normal, r_a, r_b, body_a, body_b, dynamic, inv_mass, inv_inertia,
+                     friction, sigma, mu_d, omega, radius, spin_limit, alpha_limit, gravity,
+                     drive_of, drive_u):
+    """The held mode's response to gravity and to each drive's unit acceleration, for
+    contacts of dynamic vertices (``body_a``) on non-dynamic edges (``body_b``):
+    ``(ok, bodies, dv, f)`` with ``dv`` (nb, 3, 1 + nd) the bodies' accelerations
+    (vx, vy, omega) and ``f`` (2k, 1 + nd) the stacked contact forces per source (column 0
+    gravity, then the drives). ``ok`` is False when a body spins (``|omega| radius`` above
+    ``spin_limit``, m/s) or the mode turns it (``|alpha|`` above ``alpha_limit * g / radius``);
+    then the phase has no closed form. ``drive_of`` is each body's drive (-1: none)."""
+    k = normal.shape[0]
+    nd = drive_u.shape[0]
+    bodies = np.unique(body_a)
+    nb = bodies.shape[0]
+    dv = np.zeros((nb, 3, 1 + nd))
+    f = np.zeros((2 * k, 1 + nd))
+    for i in range(nb):
+        if abs(omega[bodies[i]]) * radius[bodies[i]] > spin_limit:
+            return False, bodies, dv, f
+    ok, J, minv, W = contact_jacobian(normal, r_a, r_b, body_a, body_b, dynamic, inv_mass,
+                                      inv_inertia, bodies)
+    if not ok:
+        return False, bodies, dv, f
+    rows_of = np.empty(k, np.int64)
+    slave = np.empty(k)
+    for i in range(k):
+        fr = friction[i]
+        rows_of[i] = BOX_ROW if fr == STICK else (SLAVED_ROW if fr == SLIDE else 0)
+        slave[i] = -sigma[i] * mu_d[i]
+    zeros = np.zeros(k)
+    A, P, rows, _, _, _ = reduce_lcp(W, rows_of, zeros, zeros, slave)
+    # right-hand sides: the contacts' relative acceleration per unit source (a vertex under
+    # gravity against an edge moved by -u per unit drive acceleration)
+    rhs = np.zeros((2 * k, 1 + nd))
+    for i in range(k):
+        nx, ny = normal[i, 0], normal[i, 1]
+        tx, ty = -ny, nx
+        rhs[i, 0] = nx * gravity[0] + ny * gravity[1]
+        rhs[k + i, 0] = tx * gravity[0] + ty * gravity[1]
+        d = drive_of[body_b[i]]
+        if d >= 0:
+            ux, uy = -drive_u[d, 0], -drive_u[d, 1]
+            rhs[i, 1 + d] = nx * ux + ny * uy
+            rhs[k + i, 1 + d] = tx * ux + ty * uy
+    m = rows.shape[0]
+    B = np.empty((m, 1 + nd))
+    for r in range(m):
+        for c in range(1 + nd):
+            B[r, c] = -rhs[rows[r], c]
+    x = np.linalg.lstsq(A, B, 1e-12)[0]
+    f = P @ x
+    jf = np.ascontiguousarray(J.T) @ f
+    for i in range(nb):
+        limit = alpha_limit / radius[bodies[i]]
+        for j in range(3):
+            for c in range(1 + nd):
+                dv[i, j, c] = minv[3 * i + j] * jf[3 * i + j, c]
+        for c in range(1 + nd):
+            if abs(dv[i, 2, c]) > limit:
+                return False, bodies, dv, f
+    return True, bodies, dv, f
+
+
+@numba.njit(**_JIT)
+def contact_groups(body_a, body_b, normal):
+    """Group ids of contacts between the same two bodies along one line (parallel normals),
+    numbered in order of each group's first contact."""
+    k = body_a.shape[0]
+    group = np.full(k, -1, np.int64)
+    nxt = 0
+    for i in range(k):
+        if group[i] >= 0:
+            continue
+        lo_i, hi_i = min(body_a[i], body_b[i]), max(body_a[i], body_b[i])
+        px, py = -normal[i, 1], normal[i, 0]
+        for j in range(k):
+            if group[j] < 0 and min(body_a[j], body_b[j]) == lo_i and \
+                    max(body_a[j], body_b[j]) == hi_i and \
+                    abs(normal[j, 0] * px + normal[j, 1] * py) < 1e-9:
+                group[j] = nxt
+        nxt += 1
+    return group
+
+
+@numba.njit(**_JIT)
+def sticking_groups(group, friction):
+    """Sticking contacts' groups renumbered 0.. in ascending group id (-1 for the others),
+    and how many there are."""
+    k = group.shape[0]
+    compact = np.full(k, -1, np.int64)
+    n = 0
+    if k == 0:
+        return compact, n
+    top = group.max()
+    new_id = np.full(top + 1, -1, np.int64)
+    for i in range(k):
+        if friction[i] == STICK:
+            new_id[group[i]] = 0
+    for g in range(top + 1):
+        if new_id[g] == 0:
+            new_id[g] = n
+            n += 1
+    for i in range(k):
+        if friction[i] == STICK:
+            compact[i] = new_id[group[i]]
+    return compact, n
+
+
+@numba.njit(**_JIT)
+def held_mask(vertex, piece, held_vertex, held_piece):
+    """Candidates (vertex against piece) that are not a held contact's vertex on an edge of
+    that piece."""
+    keep = np.ones(vertex.shape[0], np.bool_)
+    for i in range(vertex.shape[0]):
+        for j in range(held_vertex.shape[0]):
+            if vertex[i] == held_vertex[j] and piece[i] == held_piece[j]:
+                keep[i] = False
+    return keep
 
 
 # --------------------------------------------------------------------------------------------

@@ -58,7 +58,7 @@ collision, as Baraff and the reference recommend.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 import math
 
 import numpy as np
@@ -77,7 +77,7 @@ from feeder_sim.dynamics import (
     SolverStats,
 )
 from feeder_sim.scene import SolverSpec
-from feeder_sim.time_stepping import friction_rows, StepContacts
+from feeder_sim.time_stepping import _dantzig_message, friction_rows, StepContacts
 from feeder_sim.world import mix, perp, rot, State, World
 
 STICK, SLIDE = kern.STICK, kern.SLIDE
@@ -132,21 +132,27 @@ class _Candidates:
     anchor_ang: np.ndarray    # (n,)
     margin: float             # bounding boxes farther apart than this were left out
     t: float                  # detection time
+    # candidates without each held contact set met so far (see without)
+    reduced: dict = field(default_factory=dict, repr=False)
 
     @property
     def n(self) -> int:
         return len(self.vertex)
 
-    def without(self, held: Contacts, n_pieces: int) -> _Candidates:
+    def without(self, held: Contacts) -> _Candidates:
         """Leave out the corners held on an edge of the piece: they stay on its boundary,
         watched by their own events."""
         if not held.n or not self.n:
             return self
-        keep = ~np.isin(self.vertex * n_pieces + self.piece,
-                        held.vertex_a * n_pieces + held.piece_b)
-        return _Candidates(self.vertex[keep], self.piece[keep],
-                           tuple(x[keep] for x in self.arrays), self.anchor_pos,
-                           self.anchor_ang, self.margin, self.t)
+        # The modes of a periodic motion hold the same few contact sets again and again.
+        key = (held.vertex_a.tobytes(), held.piece_b.tobytes())
+        out = self.reduced.get(key)
+        if out is None:
+            keep = kern.held_mask(self.vertex, self.piece, held.vertex_a, held.piece_b)
+            out = self.reduced[key] = _Candidates(
+                self.vertex[keep], self.piece[keep], tuple(x[keep] for x in self.arrays),
+                self.anchor_pos, self.anchor_ang, self.margin, self.t)
+        return out
 
 
 @dataclass
@@ -205,17 +211,7 @@ def _relative_velocity(cs: ContactSet, state: State) -> tuple[np.ndarray, np.nda
 def _groups(cs: ContactSet) -> np.ndarray:
     """Group ids of contacts between the same two bodies along one line (parallel normals)."""
     c = cs.contacts
-    group = np.full(c.n, -1)
-    nxt = 0
-    for i in range(c.n):
-        if group[i] >= 0:
-            continue
-        same = (np.minimum(c.body_a, c.body_b) == min(c.body_a[i], c.body_b[i])) & \
-            (np.maximum(c.body_a, c.body_b) == max(c.body_a[i], c.body_b[i])) & \
-            (np.abs(c.normal @ perp(c.normal[i])) < 1e-9) & (group < 0)
-        group[same] = nxt
-        nxt += 1
-    return group
+    return kern.contact_groups(c.body_a, c.body_b, c.normal)
 
 
 class EventDriven:
@@ -595,7 +591,7 @@ class EventDriven:
         if self._near is None:
             self._near = self._find_candidates(state, self._closed_form_margin())
         if mode.candidates is None:
-            mode.candidates = self._near.without(mode.features, len(self._piece_body))
+            mode.candidates = self._near.without(mode.features)
         pos, ang, vel, om = self._out
         dvel = np.zeros(len(ph.drives[2]))
         t0 = state.t
@@ -614,7 +610,7 @@ class EventDriven:
                 # Detected at another configuration, or a single step can outrun the margin.
                 grow = 2.0 if cand.t == t0 else 1.0
                 self._near = self._find_candidates(state, grow * cand.margin)
-                mode.candidates = self._near.without(mode.features, len(self._piece_body))
+                mode.candidates = self._near.without(mode.features)
                 continue
             break
         else:
@@ -635,7 +631,7 @@ class EventDriven:
         self.world.apply_prescribed_motion(state)
         if status == kern.REFRESH:
             self._near = self._find_candidates(state, cand.margin)
-            mode.candidates = self._near.without(mode.features, len(self._piece_body))
+            mode.candidates = self._near.without(mode.features)
         return status == kern.EVENT
 
     def _contacts_at(self, pos: np.ndarray, ang: np.ndarray) -> ContactSet:
@@ -715,24 +711,13 @@ class EventDriven:
         a, b = c.body_a, c.body_b
         if not (w.dynamic[a].all() and not w.dynamic[b].any()):
             return None
-        bodies, J, minv, A, P, rows = self._mode_system(cs)
-        spin = np.abs(state.omega[bodies]) * self._radius[bodies]
-        if np.any(spin > _SPIN_FRACTION * self._slip_tol):
-            return None
-        nd = len(drives[2])
-        # Right-hand sides of the held mode per unit source: gravity, then each drive's
-        # acceleration (the edge bodies are not dynamic, so only they carry drives).
-        rel = np.zeros((k, 2, 1 + nd))
-        rel[:, :, 0] = w.gravity
-        for i in np.flatnonzero(index[b] >= 0):
-            rel[i, :, 1 + index[b[i]]] = -drives[0][index[b[i]]]
-        rhs = np.concatenate([np.einsum('kj,kjc->kc', c.normal, rel),
-                              np.einsum('kj,kjc->kc', cs.tangent, rel)])
-        x = np.linalg.lstsq(A, -rhs[rows], rcond=1e-12)[0]
-        f = P @ x
-        dv = (minv[:, None] * (J.T @ f)).reshape(len(bodies), 3, 1 + nd)
-        alpha_scale = _ALPHA_REL * self._g / self._radius[bodies]
-        if np.any(np.abs(dv[:, 2, :]) > alpha_scale[:, None]):
+        ok, bodies, dv, f = kern.closed_form_mode(
+            c.normal, cs.r_a, cs.r_b, a, b, w.dynamic, w.inv_mass, w.inv_inertia,
+            mode.friction, mode.sigma, cs.mu_dynamic, state.omega, self._radius,
+            _SPIN_FRACTION * self._slip_tol, _ALPHA_REL * self._g, np.asarray(w.gravity,
+                                                                          dtype=float),
+            index, drives[0])
+        if not ok:
             return None
         phi0, phi1 = free.phi0.copy(), free.phi1.copy()
         phi0[bodies] += dv[:, :2, 0]
@@ -762,10 +747,7 @@ class EventDriven:
         k = features.n
         if not k:
             return self._no_contacts, 0
-        stick = friction == STICK
-        compact = np.full(k, -1, dtype=np.int64)
-        _, compact[stick] = np.unique(group[stick], return_inverse=True)
-        n_groups = int(compact.max(initial=-1)) + 1
+        compact, n_groups = kern.sticking_groups(group, friction)
         n_slide = int(np.sum(friction == SLIDE))
         v, e = self._verts, features.edge_b
         none = np.zeros(0)
@@ -794,7 +776,7 @@ class EventDriven:
                 state, max(2.0 * reach, self._closed_form_margin()))
             mode.candidates = None
         if mode.candidates is None:
-            mode.candidates = near.without(mode.features, len(self._piece_body))
+            mode.candidates = near.without(mode.features)
 
     def _find_candidates(self, state: State, margin: float) -> _Candidates:
         """Active corners against pieces of other bodies whose boxes are within ``margin``."""
@@ -1027,12 +1009,22 @@ class EventDriven:
             if res <= tol:
                 self.stats.record(lcp.LCPResult(x, w, 'active set', 0, 0, res, True, ''))
                 return f, True, ''
-        A, P, rows, normal_of, lo, hi = kern.reduce_lcp(W, friction, mu_lo, mu_hi, slave)
-        result = lcp.solve(lcp.FrictionalLCP(A, b_full[rows], normal_of, lo, hi), tol=tol)
+        # The compiled Dantzig takes lcp.solve's pivots ~100x faster; an answer that misses
+        # the tolerance goes to lcp.solve and its fallback ladder, as in time_stepping.
+        f, x, w, res, pivots, codes, (A, P, b, normal_of, lo, hi) = kern.lcp_dantzig(
+            W, b_full, friction, mu_lo, mu_hi, slave)
+        if res <= tol:
+            result = lcp.LCPResult(x, w, 'dantzig', pivots, 0, res, True, '')
+        else:
+            self.stats.fallbacks += 1
+            if len(self.stats.messages) < 20:
+                self.stats.messages.append(_dantzig_message(res, codes))
+            result = lcp.solve(lcp.FrictionalLCP(A, b, normal_of, lo, hi), tol=tol)
+            f = P @ result.x
         self.stats.record(result)
         if result.converged:
             self._patterns[key] = kern.lcp_pattern(result.x, normal_of, lo, hi)
-        return P @ result.x, result.converged, result.message
+        return f, result.converged, result.message
 
     def reset(self) -> None:
         self._mode = None

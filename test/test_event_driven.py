@@ -8,10 +8,14 @@
   closed-form phases and in integrated ones.
 """
 
+import math
+
 import numpy as np
 import pytest
 
-from feeder_sim.builders import box, build
+from feeder_sim import _ed_kernels as kern
+from feeder_sim import lcp
+from feeder_sim.builders import box, build, conveyor
 from feeder_sim.simulator import Simulator
 
 HALF_M = 0.005        # half side of the 10 mm blocks
@@ -133,3 +137,108 @@ def test_thrown_part_bounces_off_a_thin_wall_while_another_body_rocks():
     assert np.allclose(sim.state.position[1], (x_hit - WALL_E * THROW_MPS * (END_S - HIT_S),
                                                0.1 - fall_m), rtol=0.0, atol=1e-9)
     assert abs(sim.state.angle[3] - 0.1) > 1e-3      # the rocker did rock
+
+
+# --------------------------------------------------------------------------- compiled paths
+# The per-event work of the closed-form conveying phases runs in compiled kernels; each is
+# checked against the numpy / lcp.solve code it replaced, on the problems a vibrating track
+# poses (sliding, and hopping with landings).
+
+def conveying_run(monkeypatch, name, gamma):
+    """Arguments and answers of every call of the kernel ``name`` while a box conveys."""
+    calls = []
+    kernel = getattr(kern, name)
+
+    def record(*args):
+        out = kernel(*args)
+        calls.append((args, out))
+        return out
+
+    monkeypatch.setattr(kern, name, record)
+    sim = Simulator(build(conveyor(psi=math.radians(20.0), mu=0.5, theta=0.0, gamma=gamma,
+                                   tolerance=1e-6)))
+    sim.advance(0.2)
+    monkeypatch.undo()
+    return calls
+
+
+@pytest.mark.parametrize('gamma', [0.8, 1.5])
+def test_compiled_dantzig_matches_lcp_solve(monkeypatch, gamma):
+    calls = conveying_run(monkeypatch, 'lcp_dantzig', gamma)
+    assert len(calls) >= 4
+    for (W, b_full, friction, mu_lo, mu_hi, slave), (f, x, w, res, _, _, _) in calls:
+        A, P, rows, normal_of, lo, hi = kern.reduce_lcp(W, friction, mu_lo, mu_hi, slave)
+        ref = lcp.solve(lcp.FrictionalLCP(A, b_full[rows], normal_of, lo, hi), tol=1e-9)
+        assert ref.method == 'dantzig' and res <= 1e-9
+        assert abs(res - ref.residual) <= 1e-15
+        scale = np.abs(ref.x).max()
+        assert np.allclose(x, ref.x, rtol=0.0, atol=1e-12 * scale)
+        assert np.allclose(f, P @ ref.x, rtol=0.0, atol=1e-12 * scale)
+        assert np.allclose(w, A @ ref.x + b_full[rows], rtol=0.0,
+                           atol=1e-12 * np.abs(b_full).max())
+
+
+def closed_form_reference(normal, r_a, r_b, body_a, body_b, dynamic, inv_mass, inv_inertia,
+                          friction, sigma, mu_d, omega, radius, spin_limit, alpha_limit,
+                          gravity, drive_of, drive_u):
+    """The numpy code ``closed_form_mode`` replaced (``EventDriven._closed_form``)."""
+    k, nd = len(normal), len(drive_u)
+    bodies = np.unique(body_a)
+    _, J, minv, W = kern.contact_jacobian(normal, r_a, r_b, body_a, body_b, dynamic, inv_mass,
+                                          inv_inertia, bodies)
+    rows_of = np.where(friction == kern.STICK, kern.BOX_ROW,
+                       np.where(friction == kern.SLIDE, kern.SLAVED_ROW, 0))
+    A, P, rows, _, _, _ = kern.reduce_lcp(W, rows_of.astype(np.int64), np.zeros(k),
+                                          np.zeros(k), -sigma * mu_d)
+    ok = not np.any(np.abs(omega[bodies]) * radius[bodies] > spin_limit)
+    tangent = normal[:, ::-1] * (-1.0, 1.0)
+    rel = np.zeros((k, 2, 1 + nd))
+    rel[:, :, 0] = gravity
+    for i in np.flatnonzero(drive_of[body_b] >= 0):
+        rel[i, :, 1 + drive_of[body_b[i]]] = -drive_u[drive_of[body_b[i]]]
+    rhs = np.concatenate([np.einsum('kj,kjc->kc', normal, rel),
+                          np.einsum('kj,kjc->kc', tangent, rel)])
+    x = np.linalg.lstsq(A, -rhs[rows], rcond=1e-12)[0]
+    f = P @ x
+    dv = (minv[:, None] * (J.T @ f)).reshape(len(bodies), 3, 1 + nd)
+    ok = ok and not np.any(np.abs(dv[:, 2, :]) > (alpha_limit / radius[bodies])[:, None])
+    return ok, bodies, dv, f
+
+
+@pytest.mark.parametrize('gamma', [0.8, 1.5])
+def test_compiled_closed_form_matches_numpy(monkeypatch, gamma):
+    calls = conveying_run(monkeypatch, 'closed_form_mode', gamma)
+    assert len(calls) >= 5
+    for args, (ok, bodies, dv, f) in calls:
+        ok_ref, bodies_ref, dv_ref, f_ref = closed_form_reference(*args)
+        assert ok == ok_ref
+        assert np.array_equal(bodies, bodies_ref)
+        assert np.allclose(dv, dv_ref, rtol=0.0, atol=1e-12 * np.abs(dv_ref).max())
+        assert np.allclose(f, f_ref, rtol=0.0, atol=1e-12 * np.abs(f_ref).max())
+
+
+def test_contact_groups_and_candidate_masks_match_numpy():
+    rng = np.random.default_rng(7)
+    for _ in range(50):
+        k = int(rng.integers(0, 7))
+        a, b = rng.integers(0, 3, k), rng.integers(0, 3, k)
+        angle = rng.choice([0.0, 0.5, math.pi], k) + rng.choice([0.0, 1e-12, 1e-6], k)
+        normal = np.stack([np.cos(angle), np.sin(angle)], 1)
+        group = np.full(k, -1)       # the numpy transcription of _groups
+        for i in range(k):
+            if group[i] < 0:
+                same = (np.minimum(a, b) == min(a[i], b[i])) & \
+                    (np.maximum(a, b) == max(a[i], b[i])) & \
+                    (np.abs(normal @ (-normal[i, 1], normal[i, 0])) < 1e-9) & (group < 0)
+                group[same] = group.max(initial=-1) + 1
+        assert np.array_equal(kern.contact_groups(a, b, normal), group)
+        friction = rng.integers(0, 3, k)
+        stick = friction == kern.STICK
+        compact = np.full(k, -1)
+        _, compact[stick] = np.unique(group[stick], return_inverse=True)
+        got, n = kern.sticking_groups(group, friction)
+        assert np.array_equal(got, compact) and n == compact.max(initial=-1) + 1
+        vertex, piece = rng.integers(0, 5, 12), rng.integers(0, 3, 12)
+        hv, hp = rng.integers(0, 5, k), rng.integers(0, 3, k)
+        keep = ~np.isin(vertex * 3 + piece, hv * 3 + hp)
+        assert np.array_equal(kern.held_mask(vertex, piece, hv, hp), keep)
