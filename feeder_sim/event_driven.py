@@ -77,7 +77,7 @@ from feeder_sim.dynamics import (
     SolverStats,
 )
 from feeder_sim.scene import SolverSpec
-from feeder_sim.time_stepping import _dantzig_message, friction_rows, StepContacts
+from feeder_sim.time_stepping import dantzig_message, friction_rows, StepContacts
 from feeder_sim.world import mix, perp, rot, State, World
 
 STICK, SLIDE = kern.STICK, kern.SLIDE
@@ -1018,7 +1018,7 @@ class EventDriven:
         else:
             self.stats.fallbacks += 1
             if len(self.stats.messages) < 20:
-                self.stats.messages.append(_dantzig_message(res, codes))
+                self.stats.messages.append(dantzig_message(res, codes))
             result = lcp.solve(lcp.FrictionalLCP(A, b, normal_of, lo, hi), tol=tol)
             f = P @ result.x
         self.stats.record(result)

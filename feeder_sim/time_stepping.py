@@ -650,7 +650,7 @@ class TimeStepper:
                 for i in np.flatnonzero(bad):
                     stats.fallbacks += 1
                     if len(stats.messages) < 20:
-                        stats.messages.append(_dantzig_message(res[i], codes[i]))
+                        stats.messages.append(dantzig_message(res[i], codes[i]))
             if large.any():
                 res, vres, work = K.solve_pgs(large, *data, lo, hi, x_n, x_t, v_t_new,
                                               np.zeros((w.n, 3)), st.pgs_tol_mps,
@@ -685,7 +685,8 @@ class TimeStepper:
         return np.flatnonzero(failed)
 
 
-def _dantzig_message(residual: float, codes) -> str:
+def dantzig_message(residual: float, codes) -> str:
+    """The logged reason a compiled Dantzig answer was solved again by ``lcp.solve``."""
     msg = f'dantzig (numba): {_ABORTS[codes[0]] or f"residual {residual:.3g}"}'
     if codes[1]:
         msg += f'; normals-first retry: {_ABORTS[codes[1]]}'
