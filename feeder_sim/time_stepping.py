@@ -285,6 +285,9 @@ class TimeStepper:
         # contacts of this step left out of the velocity solve, with the midpoint positions
         # (for the projection; see _with_spare)
         self._spare: tuple[Contacts, np.ndarray] | None = None
+        # feature key -> approach speed (m/s, < 0) of a contact whose speculative row held the
+        # part back last step: its Newton row bounces the speed it came in with
+        self._approach: dict[int, float] = {}
         self._geo: _IslandGeometry | None = None
 
     def margin(self, state: State, h: float) -> float:
@@ -510,8 +513,8 @@ class TimeStepper:
             self._spare = (_take(contacts, np.flatnonzero(left_out)), mid.position)
             contacts = _take(contacts, keep)
             groups = None       # dropping contacts may split islands
-        (tangent, r_a, r_b, mu_s, mu_d, restitution, _, v_t_free, v_t_pre, pile, colliding, b_n,
-         box, mu_lo, mu_hi, gap_min) = rows[1:]
+        (tangent, r_a, r_b, mu_s, mu_d, restitution, v_n_free, v_t_free, v_t_pre, pile,
+         colliding, b_n, box, mu_lo, mu_hi, gap_min) = rows[1:]
         cs = ContactSet(contacts, tangent, r_a, r_b, mu_s, mu_d, restitution)
         # islands and island-ordered kinematics, shared with the projection after the step
         geo = self._geo = _IslandGeometry(w, cs, groups)
@@ -524,6 +527,12 @@ class TimeStepper:
         keys = self._warm.key(c)
         p_n = np.zeros(c.n)
         p_t = np.zeros(c.n)
+        bouncy = restitution > 0.0
+        if bouncy.any():
+            # speculative rows: neither a pile's nor a Newton row (the kernel's index set)
+            spec = ~pile & (c.gap > st.touch_m) & (c.gap + 0.5 * h * v_n_free > st.touch_m)
+            if self._approach:
+                b_n = self._restore_approach(cs, keys, b_n, ~pile & ~spec & bouncy, state)
 
         order, starts = geo.order, geo.starts
         n_isl = len(starts) - 1
@@ -552,8 +561,42 @@ class TimeStepper:
             np.add(end.velocity, dv[:, :2], out=end.velocity, where=self._dyn_col)
             np.add(end.omega, dv[:, 2], out=end.omega, where=self._dyn)
         stats.impacts += int(np.count_nonzero(colliding & (p_n > 0)))
+        self._approach = (self._held_back(cs, keys, spec & bouncy & (p_n > 0.0), state)
+                          if bouncy.any() else {})
         self._warm.store(keys, p_n, p_t)
         return StepContacts(cs, p_n, p_t)
+
+    def _held_back(self, cs: ContactSet, keys: np.ndarray, held: np.ndarray,
+                   state: State) -> dict[int, float]:
+        """Approach speeds (m/s) of the ``held`` contacts (speculative rows that pushed):
+        their parts arrive slowed to what the row allowed, and the collision next step must
+        bounce the speed they came in with (10 m/s at e = 0.5 left at 4.81, not 5 m/s)."""
+        idx = np.flatnonzero(held)
+        if not len(idx):
+            return {}
+        c = cs.contacts
+        v_n, _ = K.contact_velocities(c.body_a[idx], c.body_b[idx], c.normal[idx], cs.r_a[idx],
+                                      cs.r_b[idx], state.velocity, state.omega)
+        before = self._approach
+        return {k: min(v, before.get(k, v)) for k, v in zip(keys[idx].tolist(), v_n.tolist())}
+
+    def _restore_approach(self, cs: ContactSet, keys: np.ndarray, b_n: np.ndarray,
+                          newton: np.ndarray, state: State) -> np.ndarray:
+        """``b_n`` with the Newton rows of contacts held back last step using the approach
+        speed from before (``_held_back``) in ``e min(v_N, 0)``."""
+        known = self._approach
+        idx = [i for i in np.flatnonzero(newton).tolist() if int(keys[i]) in known]
+        if not idx:
+            return b_n
+        idx = np.array(idx)
+        c = cs.contacts
+        v_now, _ = K.contact_velocities(c.body_a[idx], c.body_b[idx], c.normal[idx],
+                                        cs.r_a[idx], cs.r_b[idx], state.velocity, state.omega)
+        came_in = np.array([known[int(k)] for k in keys[idx]])
+        b_n = b_n.copy()
+        b_n[idx] += cs.restitution[idx] * (np.minimum(np.minimum(came_in, v_now), 0.0)
+                                           - np.minimum(v_now, 0.0))
+        return b_n
 
     def _contact_rows(self, contacts, groups: tuple, state: State, mid: State, end: State,
                       h: float, slip_tol: float, reach_m: float) -> tuple:
