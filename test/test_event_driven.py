@@ -15,7 +15,7 @@ import pytest
 
 from feeder_sim import _ed_kernels as kern
 from feeder_sim import lcp
-from feeder_sim.builders import box, build, conveyor
+from feeder_sim.builders import box, build, conveyor, scene_dict
 from feeder_sim.simulator import Simulator
 
 HALF_M = 0.005        # half side of the 10 mm blocks
@@ -29,9 +29,8 @@ def block(name, x_m, y_m, vx_mps, vy_mps=0.0):
 
 
 def run(bodies, duration_s, time_step_s=1e-2):
-    sim = Simulator(build({'name': 'blocks', 'gravity': [0.0, 0.0],
-                           'solver': {'method': 'event_driven', 'time_step': time_step_s},
-                           'bodies': bodies}))
+    sim = Simulator(build(scene_dict('blocks', bodies, 'event_driven', time_step_s,
+                                     gravity=(0.0, 0.0))))
     sim.advance(duration_s)
     return sim
 
@@ -98,9 +97,8 @@ def thrown(time_step_s, gravity=0.0, angle_rad=0.0, omega_radps=0.0, rocker=Fals
             {'name': 'rocker', 'type': 'dynamic', 'polygon': box(0.01, 0.05), 'mass': 0.1,
              'pose': [-0.5, 0.05 * np.cos(tilt) + 0.01 * np.sin(tilt), tilt],
              'mu_static': 0.8, 'mu_dynamic': 0.8}]
-    sim = Simulator(build({'name': 'thrown', 'gravity': [0.0, gravity],
-                           'solver': {'method': 'event_driven', 'time_step': time_step_s},
-                           'bodies': bodies}))
+    sim = Simulator(build(scene_dict('thrown', bodies, 'event_driven', time_step_s,
+                                     gravity=(0.0, gravity))))
     sim.advance(END_S)
     return sim
 

@@ -4,7 +4,7 @@ their mass ratio, and a fast part does not pass through a thin wall."""
 import numpy as np
 import pytest
 
-from feeder_sim.builders import box, build
+from feeder_sim.builders import box, build, scene_dict
 from feeder_sim.simulator import Simulator
 import feeder_sim.time_stepping as TS
 
@@ -23,9 +23,8 @@ def heavy_on_light(ratio: float) -> Simulator:
     bodies = [ground, _box('leg_left', 0.005, 0.005, (-0.08, 0.005, 0.0), 1e-3),
               _box('leg_right', 0.005, 0.005, (0.08, 0.005, 0.0), 1e-3),
               _box('plank', 0.1, 0.01, (0.0, 0.02, 0.0), 1e-3 * ratio)]
-    return Simulator(build({'name': 'heavy_on_light', 'gravity': [0.0, -G],
-                            'solver': {'method': 'time_stepping', 'time_step': 1e-3},
-                            'bodies': bodies}))
+    return Simulator(build(scene_dict('heavy_on_light', bodies, 'time_stepping', 1e-3,
+                                      gravity=(0.0, -G))))
 
 
 def test_light_boxes_under_a_heavy_plank_stay_at_rest():
@@ -82,9 +81,8 @@ def thrown_at_thin_wall(omega: float, angle: float, mu: float, h: float = 1e-3) 
             'pose': [WALL_X, 0.0, 0.0], **material}
     part = {'name': 'part', 'type': 'dynamic', 'polygon': box(PART_HALF, PART_HALF),
             'mass': 0.01, 'pose': [0.0, 0.0, angle], 'velocity': [10.0, 0.0, omega], **material}
-    return Simulator(build({'name': 'thrown', 'gravity': [0.0, 0.0],
-                            'solver': {'method': 'time_stepping', 'time_step': h},
-                            'bodies': [wall, part]}))
+    return Simulator(build(scene_dict('thrown', [wall, part], 'time_stepping', h,
+                                      gravity=(0.0, 0.0))))
 
 
 @pytest.mark.parametrize('omega, angle, mu', [(0.0, 0.0, 0.0), (0.0, 0.2, 0.3),
