@@ -358,8 +358,8 @@ def _slow(h, speed, turn, radius, half_width, reach):
 
 
 @numba.njit(**_JIT)
-def advance(t0, t_end, h, threshold, n_events, bodies, drives, contacts, cands, verts,
-            normals, scales, reach, pos, ang, vel, om, dvel_drive):
+def advance_watching(t0, t_end, h, threshold, bodies, drives, contacts, cands, verts,
+                     normals, scales, reach, pos, ang, vel, om, dvel_drive, g_hi):
     """Step a closed-form phase from t0 towards t_end in steps of h, watching the events.
     A step is shortened where a corner could otherwise pass through a piece unseen
     (``guarded_step``).
@@ -369,14 +369,16 @@ def advance(t0, t_end, h, threshold, n_events, bodies, drives, contacts, cands, 
     t and the state just past it is returned. Stops early (REFRESH) before a step that could
     carry a body out of reach of the candidate collisions.
 
-    Returns ``(status, t, steps)``; ``pos, ang, vel, om`` hold the state at t and
-    ``dvel_drive`` the drives' velocity change since t0 (the integral of their acceleration).
+    Returns ``(status, t, steps, offset)``; ``pos, ang, vel, om`` hold the state at t,
+    ``dvel_drive`` the drives' velocity change since t0 (the integral of their acceleration),
+    ``g_hi`` the event functions at t (one per function) and ``offset`` what is added to each
+    before testing it (``event_offsets``): the ones that fired are below ``-offset``.
     """
     nd = drives[2].shape[0]
+    n_events = g_hi.shape[0]
     acc_drive = np.empty(nd)
     dv_scratch = np.empty(nd)
     g_lo = np.empty(n_events)
-    g_hi = np.empty(n_events)
     _events(t0, t0, bodies, drives, contacts, cands, verts, normals, scales, pos, ang, vel, om,
             acc_drive, dv_scratch, g_lo)
     offset = event_offsets(g_lo, cands[0].shape[0], threshold)
@@ -396,7 +398,7 @@ def advance(t0, t_end, h, threshold, n_events, bodies, drives, contacts, cands, 
         if not _within_reach(dt, bodies[0], pos, ang, speed, turn, reach):
             _events(tp, t0, bodies, drives, contacts, cands, verts, normals, scales, pos, ang,
                     vel, om, acc_drive, dvel_drive, g_hi)
-            return REFRESH, tp, steps
+            return REFRESH, tp, steps, offset
         t1 = tp + dt
         _events(t1, t0, bodies, drives, contacts, cands, verts, normals, scales, pos, ang, vel,
                 om, acc_drive, dvel_drive, g_hi)
@@ -407,13 +409,23 @@ def advance(t0, t_end, h, threshold, n_events, bodies, drives, contacts, cands, 
                            pos, ang, vel, om, acc_drive, dvel_drive, n_events)
             _events(t_ev, t0, bodies, drives, contacts, cands, verts, normals, scales, pos, ang,
                     vel, om, acc_drive, dvel_drive, g_hi)
-            return EVENT, t_ev, steps
+            return EVENT, t_ev, steps, offset
         tp = t1
         g_lo[:] = g_hi
         steps += 1
     _events(tp, t0, bodies, drives, contacts, cands, verts, normals, scales, pos, ang, vel, om,
             acc_drive, dvel_drive, g_hi)
-    return DONE, tp, steps
+    return DONE, tp, steps, offset
+
+
+@numba.njit(**_JIT)
+def advance(t0, t_end, h, threshold, n_events, bodies, drives, contacts, cands, verts,
+            normals, scales, reach, pos, ang, vel, om, dvel_drive):
+    """``advance_watching`` without the event functions: ``(status, t, steps)``."""
+    status, t, steps, _ = advance_watching(t0, t_end, h, threshold, bodies, drives, contacts,
+                                           cands, verts, normals, scales, reach, pos, ang,
+                                           vel, om, dvel_drive, np.empty(n_events))
+    return status, t, steps
 
 
 @numba.njit(**_JIT)

@@ -34,7 +34,11 @@ Phases are followed in one of two ways:
   functions) and the steps are compiled; while a drive blends after a command it is not a
   plain sinusoid, and a Python right-hand side that asks the drives takes over.
 
-The kernels are in :mod:`feeder_sim._ed_kernels`. Candidate collisions are the active corners
+The kernels are in :mod:`feeder_sim._ed_kernels`. A single dynamic body's closed-form phases
+are chained in compiled code (:mod:`feeder_sim._ed_chain`) through the events after which only
+its held contacts touch (a slip stopping or reversing, static friction giving way, a lift-off):
+its next mode then follows from the force LCP over those contacts alone, and Python sees only
+the other events (collisions, a corner leaving its edge). Candidate collisions are the active corners
 of every piece against every other piece whose bounding box lay within a margin when they were
 detected; they are detected again only when a body may have moved half that margin since (in
 closed form from a bound on the exact velocities, when integrating from a heuristic reach per
@@ -63,6 +67,7 @@ import math
 
 import numpy as np
 
+from feeder_sim import _ed_chain as chain
 from feeder_sim import _ed_kernels as kern
 from feeder_sim import lcp
 from feeder_sim.collision import Contacts, evaluate_gaps, find_contacts
@@ -92,6 +97,8 @@ _GAP_SCALE_M = 1e-3   # gaps fire at -1e-12 m
 # gives it no angular acceleration beyond round-off (relative to g over its radius).
 _SPIN_FRACTION = 1e-3
 _ALPHA_REL = 1e-12
+# Rows of contact impulses one compiled chain of phases records before it pauses.
+_CHAIN_ROWS = 512
 
 # Dormand–Prince 5(4) tableau (Dormand & Prince 1980); the 5th-order row is also the FSAL row.
 _C = np.array([0.0, 1 / 5, 3 / 10, 4 / 5, 8 / 9, 1.0, 1.0])
@@ -119,6 +126,10 @@ class EventSettings:
     max_events_at_one_time: int = 50
     cascade_window_s: float = 1e-6   # events closer than this in time count as one cascade
     max_give_way_s: float = 1e-5     # longest step taken past a persisting cascade
+    # One dynamic body: follow its closed-form phases through the mode changes that need only
+    # the held contacts in compiled code (:mod:`feeder_sim._ed_chain`); False takes each event
+    # through the general path (the same answers to round-off, several times slower).
+    chained: bool = True
 
 
 @dataclass
@@ -276,6 +287,18 @@ class EventDriven:
                              np.zeros((0, 0)), none_i, none_f, none_f, none_i, 0)
         self._out = (np.zeros((world.n, 2)), np.zeros(world.n), np.zeros((world.n, 2)),
                      np.zeros(world.n))
+        # One dynamic body: its closed-form phases run chained through mode changes (_ed_chain).
+        self._chained = nd == 1 and self.settings.chained
+        self._chain_world = (np.asarray(world.dynamic, dtype=np.bool_), world.inv_mass,
+                             world.inv_inertia, radius, np.asarray(world.gravity, dtype=float))
+        self._chain_geometry = (self._verts, self._normals,
+                                self._next_vertex.astype(np.int64),
+                                np.asarray(self._piece_start, dtype=np.int64))
+        st = self.settings
+        self._chain_tols = (_EVENT_THRESHOLD, self._slip_tol, st.touch_m, st.lcp_tol,
+                            st.cascade_window_s, _SPIN_FRACTION * self._slip_tol,
+                            _ALPHA_REL * g, self._force_scale * 1e-12, 1e-9 * g,
+                            1e3 * st.touch_m)
 
     # ----------------------------------------------------------------- state <-> vector
     def _pack(self, s: State) -> np.ndarray:
@@ -443,7 +466,8 @@ class EventDriven:
             for i in self.world.driven:
                 t_stop = min(t_stop, self.world.drives[i].next_change_after(state.t))
             if self._mode.phase is not None:
-                hit = self._follow_closed_form(state, t_stop)
+                hit = (self._follow_chain if self._chained else self._follow_closed_form)(
+                    state, t_stop)
             else:
                 hit = self._integrate_step(state, t_stop, scratch)
             if hit:
@@ -633,6 +657,84 @@ class EventDriven:
             self._near = self._find_candidates(state, cand.margin)
             mode.candidates = self._near.without(mode.features)
         return status == kern.EVENT
+
+    def _follow_chain(self, state: State, t_stop: float) -> bool:
+        """``_follow_closed_form`` for a single dynamic body, carried on through the events
+        that only change its mode (:mod:`feeder_sim._ed_chain`)."""
+        mode, ph = self._mode, self._mode.phase
+        if self._near is None:
+            self._near = self._find_candidates(state, self._closed_form_margin())
+        near, f = self._near, mode.features
+        t0 = state.t
+        out = (state.position.copy(), state.angle.copy(), state.velocity.copy(),
+               state.omega.copy())
+        record = (np.empty(_CHAIN_ROWS, np.int64), np.empty(_CHAIN_ROWS, np.int64),
+                  np.empty(_CHAIN_ROWS, np.int64), np.empty(_CHAIN_ROWS, np.int64),
+                  np.empty((_CHAIN_ROWS, 2)), np.empty((_CHAIN_ROWS, 2)),
+                  np.empty(_CHAIN_ROWS), np.empty(_CHAIN_ROWS))
+        status, t_new, steps, events, rows, sel, friction, sigma, phi0, phi1, f0, f1, lcps = \
+            chain.follow(
+                t0, t_stop, self.h_max(), out, (ph.kind, ph.index, self._drives[1][2].phi0,
+                                                ph.drives),
+                self._chain_world, mode.held[:6],
+                (f.vertex_a.astype(np.int64), f.edge_b.astype(np.int64),
+                 f.piece_b.astype(np.int64), mode.material[0], mode.material[1]),
+                (mode.friction.astype(np.int64), mode.sigma.astype(float), ph.phi0, ph.phi1,
+                 ph.f0, ph.f1),
+                (near.vertex.astype(np.int64), near.piece.astype(np.int64), near.arrays,
+                 near.anchor_pos, near.anchor_ang, near.margin),
+                self._chain_geometry, (self._force_scale, self._speed, _GAP_SCALE_M),
+                self._chain_tols, record)
+        if status == kern.REFRESH and t_new == t0 and not events:
+            return self._follow_closed_form(state, t_stop)   # it widens the candidates' margin
+        st = self.stats
+        st.steps += steps
+        st.events += events
+        st.lcp_solves += int(lcps[0])
+        st.trivial_solves += int(lcps[1])
+        st.lcp_rows += int(lcps[2])
+        st.max_lcp_rows = max(st.max_lcp_rows, int(lcps[3]))
+        st.max_residual = max(st.max_residual, float(lcps[4]))
+        st.max_penetration_m = max(st.max_penetration_m, float(lcps[5]))
+        st.pivots += int(lcps[6])
+        d = self._dyn
+        state.t = t_new
+        state.position[d] = out[0][d]
+        state.angle[d] = out[1][d]
+        state.velocity[d] = out[2][d]
+        state.omega[d] = out[3][d]
+        self.world.apply_prescribed_motion(state)
+        if rows:
+            self._pending.append(self._recorded(state, record, rows))
+        if status == kern.EVENT:
+            return True
+        if events:
+            features = f.take(sel)
+            material = tuple(m[sel] for m in mode.material)
+            normal = kern.held_geometry(state.position, state.angle,
+                                        *(x[sel] for x in mode.held[:6]))[1]
+            group = kern.contact_groups(features.body_a, features.body_b, normal)
+            held, n_events = self._held(features, friction, sigma, group, material[0])
+            mode = self._mode = _Mode(features, friction, sigma, group, material, held,
+                                      n_events)
+            mode.phase = _Phase(ph.kind, ph.index, phi0, phi1, ph.drives,
+                                held[:6] + (f0, f1) + held[8:], f0, f1)
+            mode.candidates = near.without(features)
+        if status == kern.REFRESH:
+            self._near = self._find_candidates(state, near.margin)
+            mode.candidates = self._near.without(mode.features)
+        return False
+
+    def _recorded(self, state: State, record: tuple, rows: int) -> StepContacts:
+        """The contact impulses a chain of phases recorded, as one report."""
+        vertex, edge, a, b, point, normal, p_n, p_t = (x[:rows] for x in record)
+        piece = self._vertex_piece
+        mu_s, mu_d, e = self._materials
+        c = Contacts(a, piece[vertex], vertex, b, piece[edge], edge, point, normal,
+                     np.zeros(rows), np.full(rows, np.nan))
+        return StepContacts(ContactSet(c, normal[:, ::-1] * (-1.0, 1.0),
+                                       point - state.position[a], point - state.position[b],
+                                       mu_s[a, b], mu_d[a, b], e[a, b]), p_n, p_t)
 
     def _contacts_at(self, pos: np.ndarray, ang: np.ndarray) -> ContactSet:
         """The held contacts at the configuration (pos, ang), built without re-detection."""
