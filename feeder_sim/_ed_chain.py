@@ -1,19 +1,24 @@
-"""The closed-form phases of one dynamic body, chained through their mode changes, compiled.
+"""The closed-form phases of one dynamic body, chained through its events, compiled.
 
-A part sliding or sticking on a vibrating track meets, every cycle, events that change only
-its contact mode: a slip stops or reverses, static friction gives way, a contact lifts off.
-At such an event the touching contacts are the held ones and none approaches, so the next mode
-follows from Baraff's force LCP over them alone. :func:`follow` runs that sequence (force LCP,
-mode, closed-form phase, its first event, ...) without returning to Python for each event,
-which is where :mod:`feeder_sim.event_driven` spends most of its time on such a part.
+A part on a vibrating track meets a few events every cycle: a slip stops or reverses, static
+friction gives way, a contact lifts off, the part lands again. Each is resolved from the part's
+contacts alone: the held ones, and at a landing the corners that reached a face. :func:`follow`
+runs the whole sequence (collision impulses, force LCP, mode, closed-form phase, its first
+event, ...) without returning to Python for each event, which is where
+:mod:`feeder_sim.event_driven` spends most of its time on such a part.
 
-It stops, and leaves the event to ``EventDriven``'s general path, at any other event: a
-candidate corner within touch, a held corner at the end of its edge or near another edge of
-its piece, a contact approaching, a force LCP the pivoting does not solve within tolerance, a
-mode without a closed form, or two events within the cascade window. Each step is the one
+It stops and leaves the event to ``EventDriven``'s general path wherever that path could see
+more than it does: a held corner at the end of its edge or near another edge of its piece, a
+corner touching near a corner of a piece or on an edge covered by another piece of its body,
+a touching corner of a non-dynamic body, an LCP the pivoting does not solve within tolerance,
+a mode without a closed form, or two events within the cascade window. Each step is the one
 ``EventDriven._settle`` takes for these contacts (same kernels, same tolerances), except that
-the force LCP always pivots where the general path first tries the last active set; the two
-answers agree to the LCP tolerance.
+the LCPs always pivot where the general path first tries the last active set; the two answers
+agree to the LCP tolerance.
+
+Contacts are held as a tuple of arrays, one row per contact: vertex, edge, the edge's piece,
+vertex body, edge body, the vertex, the edge's ends and its normal (each local to its body),
+and the pair's mu_static, mu_dynamic and restitution.
 """
 
 from __future__ import annotations
@@ -28,7 +33,46 @@ from feeder_sim import _ed_kernels as kern
 _JIT = {'cache': True, 'nogil': True, 'error_model': 'numpy'}
 
 DONE, EVENT, REFRESH = kern.DONE, kern.EVENT, kern.REFRESH
-PAUSE = 3         # the impulse record is full: the next phase starts in the next call
+# Statistics ``follow`` returns, by index.
+(N_LCPS, N_TRIVIAL, LCP_ROWS, MAX_ROWS, MAX_RESIDUAL, MAX_PENETRATION, PIVOTS, IMPACTS,
+ ENERGY_FIXES, N_STATS) = range(10)
+
+
+@numba.njit(**_JIT)
+def _take(c, idx):
+    """The contacts ``idx`` of ``c``."""
+    return (c[0][idx], c[1][idx], c[2][idx], c[3][idx], c[4][idx], c[5][idx], c[6][idx],
+            c[7][idx], c[8][idx], c[9][idx], c[10][idx], c[11][idx])
+
+
+@numba.njit(**_JIT)
+def _join(c, d):
+    """The contacts of ``c`` followed by those of ``d``."""
+    return (np.concatenate((c[0], d[0])), np.concatenate((c[1], d[1])),
+            np.concatenate((c[2], d[2])), np.concatenate((c[3], d[3])),
+            np.concatenate((c[4], d[4])), np.concatenate((c[5], d[5])),
+            np.concatenate((c[6], d[6])), np.concatenate((c[7], d[7])),
+            np.concatenate((c[8], d[8])), np.concatenate((c[9], d[9])),
+            np.concatenate((c[10], d[10])), np.concatenate((c[11], d[11])))
+
+
+@numba.njit(**_JIT)
+def _geometry(pos, ang, c):
+    """World point, normal, gap and edge parameter of the contacts ``c``."""
+    return kern.held_geometry(pos, ang, c[3], c[4], c[5], c[6], c[7], c[8])
+
+
+@numba.njit(**_JIT)
+def _arms(pos, c, point):
+    """Contact points relative to the vertex body's and the edge body's origin."""
+    k = point.shape[0]
+    r_a = np.empty((k, 2))
+    r_b = np.empty((k, 2))
+    for i in range(k):
+        for j in range(2):
+            r_a[i, j] = point[i, j] - pos[c[3][i], j]
+            r_b[i, j] = point[i, j] - pos[c[4][i], j]
+    return r_a, r_b
 
 
 @numba.njit(**_JIT)
@@ -55,136 +99,244 @@ def _segment_distance(px, py, q0x, q0y, q1x, q1y):
 
 
 @numba.njit(**_JIT)
-def _only_held_touch(pos, ang, sel, held, f_edge, f_piece, geometry, cands, near_m, touch_m):
-    """True if the held contacts ``sel`` are all that touch: no candidate corner within
-    ``touch_m`` of its piece and no held corner within ``near_m`` of another edge of its
-    piece (contact detection could pair them then)."""
-    verts, normals, next_vertex, piece_start = geometry
-    cv_body, cv_local, cp_body, cp_start, cp_end, _, _ = cands
+def _edge_ends_fired(g, offset, first, end):
+    """True if an edge-parameter event function (``g[first:end]``) is below its level."""
+    for j in range(first, end):
+        if g[j] + offset[j] < 0.0:
+            return True
+    return False
+
+
+@numba.njit(**_JIT)
+def _touching(pos, ang, held, cands, world, geometry, materials, near_m, touch_m):
+    """The contacts contact detection would find at (pos, ang) besides the held ones:
+    ``(ok, new contacts)``, not ok where the general path must find them.
+
+    A candidate corner within ``touch_m`` of its piece touches the piece's edge it lies on.
+    Not ok: a held corner within ``near_m`` of another edge of its piece, a touching corner
+    within ``near_m`` of a second edge line (near the piece's corner), deeper than ``near_m``,
+    pointing out of the edge, of a non-dynamic body, on a dynamic piece, or on an edge
+    another piece of its body covers."""
+    verts, normals, next_vertex, prev_vertex, piece_start, edge_length, covered = geometry
+    dynamic = world[0]
+    mu_s, mu_d, restitution = materials
+    c_vertex, c_piece = cands[0], cands[1]
+    cv_body, cv_local, cp_body, cp_start, cp_end, _, _ = cands[2]
+    nothing = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64),
+               np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)),
+               np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0),
+               np.zeros(0), np.zeros(0))
+    for q in range(held[0].shape[0]):
+        a, b = held[3][q], held[4][q]
+        px, py = kern.world_point(pos, ang, a, held[5][q])
+        p = held[2][q]
+        for e in range(piece_start[p], piece_start[p + 1]):
+            if e == held[1][q]:
+                continue
+            q0x, q0y = kern.world_point(pos, ang, b, verts[e])
+            q1x, q1y = kern.world_point(pos, ang, b, verts[next_vertex[e]])
+            if _segment_distance(px, py, q0x, q0y, q1x, q1y) <= near_m:
+                return False, nothing
+    found = np.zeros(cv_body.shape[0], np.int64)
+    edge_of = np.zeros(cv_body.shape[0], np.int64)
+    n_new = 0
     for i in range(cv_body.shape[0]):
         if kern._vertex_piece_gap(pos, ang, cv_body[i], cv_local[i], cp_body[i], cp_start[i],
-                                  cp_end[i], verts, normals) <= touch_m:
-            return False
-    c_a, c_b, vloc = held[0], held[1], held[2]
-    for q in range(sel.shape[0]):
-        i = sel[q]
-        px, py = kern.world_point(pos, ang, c_a[i], vloc[i])
-        p = f_piece[i]
-        for e in range(piece_start[p], piece_start[p + 1]):
-            if e == f_edge[i]:
-                continue
-            q0x, q0y = kern.world_point(pos, ang, c_b[i], verts[e])
-            q1x, q1y = kern.world_point(pos, ang, c_b[i], verts[next_vertex[e]])
-            if _segment_distance(px, py, q0x, q0y, q1x, q1y) <= near_m:
-                return False
-    return True
+                                  cp_end[i], verts, normals) > touch_m:
+            continue
+        a, b, v = cv_body[i], cp_body[i], c_vertex[i]
+        if not dynamic[a] or dynamic[b]:
+            return False, nothing
+        px, py = kern.world_point(pos, ang, a, verts[v])
+        cb, sb = math.cos(ang[b]), math.sin(ang[b])
+        best, second, e_best = -np.inf, -np.inf, -1
+        for e in range(cp_start[i], cp_end[i]):
+            q0x, q0y = kern.world_point(pos, ang, b, verts[e])
+            nx = cb * normals[e, 0] - sb * normals[e, 1]
+            ny = sb * normals[e, 0] + cb * normals[e, 1]
+            d = nx * (px - q0x) + ny * (py - q0y)
+            if d > best:
+                best, second, e_best = d, best, e
+            elif d > second:
+                second = d
+        if second > -near_m or best < -near_m or covered[e_best]:
+            return False, nothing
+        nx = cb * normals[e_best, 0] - sb * normals[e_best, 1]
+        ny = sb * normals[e_best, 0] + cb * normals[e_best, 1]
+        # both neighbours of the corner on the edge's outer side (as contact detection asks)
+        for w, edge in ((prev_vertex[v], prev_vertex[v]), (next_vertex[v], v)):
+            ux, uy = kern.world_point(pos, ang, a, verts[w])
+            if nx * (ux - px) + ny * (uy - py) < -max(touch_m, 1e-9 * edge_length[edge]):
+                return False, nothing
+        found[n_new], edge_of[n_new] = i, e_best
+        n_new += 1
+    new_vertex = np.empty(n_new, np.int64)
+    new_edge = np.empty(n_new, np.int64)
+    new_piece = np.empty(n_new, np.int64)
+    new_a = np.empty(n_new, np.int64)
+    new_b = np.empty(n_new, np.int64)
+    new_mu_s = np.empty(n_new)
+    new_mu_d = np.empty(n_new)
+    new_e = np.empty(n_new)
+    for q in range(n_new):
+        i, e = found[q], edge_of[q]
+        a, b = cv_body[i], cp_body[i]
+        new_vertex[q], new_edge[q], new_piece[q] = c_vertex[i], e, c_piece[i]
+        new_a[q], new_b[q] = a, b
+        new_mu_s[q], new_mu_d[q], new_e[q] = mu_s[a, b], mu_d[a, b], restitution[a, b]
+    return True, (new_vertex, new_edge, new_piece, new_a, new_b, verts[new_vertex],
+                  verts[new_edge], verts[next_vertex[new_edge]], normals[new_edge], new_mu_s,
+                  new_mu_d, new_e)
 
 
 @numba.njit(**_JIT)
-def _regular(g, offset, first_geometric):
-    """True if every event function below its level is a force, friction-cone or slip one."""
-    for j in range(first_geometric, g.shape[0]):
-        if g[j] + offset[j] < 0.0:
-            return False
-    return True
+def _record(c, point, normal, p, rec, rows):
+    """Stacked contact impulses ``p`` of the contacts ``c`` into ``rec`` from row ``rows``."""
+    rec_vertex, rec_edge, rec_a, rec_b, rec_point, rec_normal, rec_pn, rec_pt = rec
+    k = point.shape[0]
+    for i in range(k):
+        r = rows + i
+        rec_vertex[r], rec_edge[r], rec_a[r], rec_b[r] = c[0][i], c[1][i], c[3][i], c[4][i]
+        rec_point[r] = point[i]
+        rec_normal[r] = normal[i]
+        rec_pn[r], rec_pt[r] = p[i], p[k + i]
+    return rows + k
 
 
 @numba.njit(**_JIT)
-def _mode_at_event(t, sel, pos, ang, vel, om, model, world, held, f_mu_s, f_mu_d, tols,
-                   acc, lcp_stats):
-    """The next mode over the held contacts ``sel`` at an event (``EventDriven._settle``):
-    ``(ok, sel, friction, sigma, normal, r_a, r_b)``; not ok where the general path must
-    decide (a contact approaches, the LCP misses)."""
+def _count(stats, x, res, pivots):
+    """An LCP solved by pivoting into the statistics (``SolverStats.record``)."""
+    stats[N_LCPS] += 1
+    stats[LCP_ROWS] += x.shape[0]
+    stats[MAX_ROWS] = max(stats[MAX_ROWS], x.shape[0])
+    stats[MAX_RESIDUAL] = max(stats[MAX_RESIDUAL], res)
+    stats[PIVOTS] += pivots
+
+
+@numba.njit(**_JIT)
+def _impacts(c, pos, ang, vel, om, world, tols, stats, rec, rows):
+    """Collision impulses until no contact approaches (``EventDriven._impact``): velocities
+    change in place and each impulse is recorded; ``(ok, rows)``."""
+    dynamic, inv_mass, inv_inertia = world[0], world[1], world[2]
+    slip_tol, lcp_tol, rest_speed, friction_impulse = tols[1], tols[3], tols[10], tols[11]
+    k = c[0].shape[0]
+    point, normal, _, _ = _geometry(pos, ang, c)
+    r_a, r_b = _arms(pos, c, point)
+    bodies = np.unique(c[3])
+    no_friction = np.zeros(k, np.int64)
+    slave = np.zeros(k)
+    for _ in range(20):
+        v_n, v_t = kern.relative_velocity(normal, r_a, r_b, c[3], c[4], vel, om)
+        colliding = v_n < -slip_tol * 10
+        if not colliding.any():
+            break
+        ok, J, minv, W = kern.contact_jacobian(normal, r_a, r_b, c[3], c[4], dynamic, inv_mass,
+                                               inv_inertia, bodies)
+        if not ok:
+            return False, rows
+        b_full = kern.impact_rhs(v_n, v_t, c[11], rest_speed)
+        # Kawachi's rule (time_stepping.friction_rows): the pre-impact slip picks static or
+        # dynamic friction, and dynamic friction cannot reverse the slip.
+        friction = np.full(k, kern.BOX_ROW, np.int64)
+        mu_lo = np.empty(k)
+        mu_hi = np.empty(k)
+        for i in range(k):
+            sliding = abs(v_t[i]) > slip_tol
+            mu = c[10][i] if sliding else c[9][i]
+            if mu <= 0.0 or friction_impulse == 0.0:
+                friction[i] = 0
+            mu_lo[i] = 0.0 if sliding and v_t[i] < 0.0 else mu
+            mu_hi[i] = 0.0 if sliding and v_t[i] > 0.0 else mu
+        p, x, _, res, pivots, _, _ = kern.lcp_dantzig(W, b_full, friction, mu_lo, mu_hi, slave)
+        if not res <= lcp_tol:
+            return False, rows
+        _count(stats, x, res, pivots)
+        dv, gain, scale = kern.impulse_effect(J, minv, W, p, v_n, v_t)
+        if gain > 1e-9 * max(1e-12, scale):
+            # never let a collision create kinetic energy: the frictionless impulse cannot
+            stats[ENERGY_FIXES] += 1
+            p, x, _, res, pivots, _, _ = kern.lcp_dantzig(W, b_full, no_friction, mu_lo, mu_hi,
+                                                          slave)
+            if not res <= lcp_tol:
+                return False, rows
+            _count(stats, x, res, pivots)
+            dv = kern.impulse_effect(J, minv, W, p, v_n, v_t)[0]
+        for q in range(bodies.shape[0]):
+            i = bodies[q]
+            vel[i, 0] += dv[q, 0]
+            vel[i, 1] += dv[q, 1]
+            om[i] += dv[q, 2]
+        rows = _record(c, point, normal, p, rec, rows)
+        stats[IMPACTS] += 1
+    return True, rows
+
+
+@numba.njit(**_JIT)
+def _mode_at_event(t, c, pos, ang, vel, om, model, world, tols, acc, stats):
+    """The next mode over the contacts ``c`` (``EventDriven._choose_mode``):
+    ``(ok, contacts kept, friction, sigma, normal, r_a, r_b)``; not ok where the general
+    path must decide (a contact approaches, the LCP misses)."""
     kind, index, drives = model[0], model[1], model[3]
     dynamic, inv_mass, inv_inertia, gravity = world[0], world[1], world[2], world[4]
     slip_tol, lcp_tol, force_tol, acc_tol = tols[1], tols[3], tols[7], tols[8]
-    c_a, c_b, vloc, q0loc, q1loc, nloc = held[0], held[1], held[2], held[3], held[4], held[5]
-    k = sel.shape[0]
-    point, normal, gap, _ = kern.held_geometry(pos, ang, c_a[sel], c_b[sel], vloc[sel],
-                                               q0loc[sel], q1loc[sel], nloc[sel])
+    k = c[0].shape[0]
+    point, normal, gap, _ = _geometry(pos, ang, c)
     for i in range(k):
-        lcp_stats[5] = max(lcp_stats[5], -gap[i])
-    a, b = c_a[sel], c_b[sel]
-    r_a = np.empty((k, 2))
-    r_b = np.empty((k, 2))
-    for i in range(k):
-        for j in range(2):
-            r_a[i, j] = point[i, j] - pos[a[i], j]
-            r_b[i, j] = point[i, j] - pos[b[i], j]
-    v_n, v_t = kern.relative_velocity(normal, r_a, r_b, a, b, vel, om)
-    none_i = np.zeros(0, np.int64)
-    none_f = np.zeros(0)
-    fail = (False, none_i, none_i, none_f, np.zeros((0, 2)), np.zeros((0, 2)),
-            np.zeros((0, 2)))
-    n_rest = 0
+        stats[MAX_PENETRATION] = max(stats[MAX_PENETRATION], -gap[i])
+    r_a, r_b = _arms(pos, c, point)
+    v_n, v_t = kern.relative_velocity(normal, r_a, r_b, c[3], c[4], vel, om)
+    fail = (False, c, np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 2)),
+            np.zeros((0, 2)), np.zeros((0, 2)))
     for i in range(k):
         if v_n[i] < -slip_tol * 10:
             return fail
-        if abs(v_n[i]) <= slip_tol * 10:
-            n_rest += 1
-    rest = np.empty(n_rest, np.int64)
-    n_rest = 0
-    for i in range(k):
-        if abs(v_n[i]) <= slip_tol * 10:
-            rest[n_rest] = i
-            n_rest += 1
-    normal, r_a, r_b, a, b = normal[rest], r_a[rest], r_b[rest], a[rest], b[rest]
+    rest = np.flatnonzero(np.abs(v_n) <= slip_tol * 10)
+    c = _take(c, rest)
+    normal, r_a, r_b = normal[rest], r_a[rest], r_b[rest]
     v_n, v_t = v_n[rest], v_t[rest]
-    sel = sel[rest]
-    mu_s, mu_d = f_mu_s[sel], f_mu_d[sel]
-    k = n_rest
+    a, b, mu_s, mu_d = c[3], c[4], c[9], c[10]
+    k = rest.shape[0]
     sliding = np.abs(v_t) > slip_tol
     sigma = np.sign(v_t)
     _free_acceleration(t, kind, index, drives, gravity, acc)
     b_full, fr = kern.force_problem(normal, r_a, r_b, a, b, om, acc, v_n, v_t, sliding, mu_s,
                                     mu_d)
-    lcp_stats[0] += 1
     if k == 0 or b_full[:k].min() >= 0.0:
-        lcp_stats[1] += 1
         f = np.zeros(2 * k)
         a_rel = b_full
+        if k:
+            stats[N_LCPS] += 1
+            stats[N_TRIVIAL] += 1
     else:
-        bodies = np.unique(a)
         ok, _, _, W = kern.contact_jacobian(normal, r_a, r_b, a, b, dynamic, inv_mass,
-                                            inv_inertia, bodies)
+                                            inv_inertia, np.unique(a))
         if not ok:
-            lcp_stats[0] -= 1
             return fail
         f, x, _, res, pivots, _, _ = kern.lcp_dantzig(W, b_full, fr, mu_s, mu_s,
                                                       -sigma * mu_d)
         if not res <= lcp_tol:
-            lcp_stats[0] -= 1
             return fail
-        m = x.shape[0]
-        lcp_stats[2] += m
-        lcp_stats[3] = max(lcp_stats[3], m)
-        lcp_stats[4] = max(lcp_stats[4], res)
-        lcp_stats[6] += pivots
+        _count(stats, x, res, pivots)
         a_rel = W @ f + b_full
     keep, friction, sigma = kern.mode_rows(f, a_rel, fr, mu_s, sigma, force_tol, acc_tol)
     kept = np.flatnonzero(keep)
-    return (True, sel[kept], friction[kept], sigma[kept], normal[kept], r_a[kept],
+    return (True, _take(c, kept), friction[kept], sigma[kept], normal[kept], r_a[kept],
             r_b[kept])
 
 
 @numba.njit(**_JIT)
-def _closed_form(sel, friction, sigma, normal, r_a, r_b, om, model, world, held, f_mu_d,
-                 tols):
+def _closed_form(c, friction, sigma, normal, r_a, r_b, om, model, world, tols):
     """The phase of the mode (``EventDriven._closed_form``): ``(ok, phi0, phi1, f0, f1)``."""
     kind, index, free_phi0, drives = model
     dynamic, inv_mass, inv_inertia, radius, gravity = world
     n, nd = kind.shape[0], drives[2].shape[0]
-    k = sel.shape[0]
+    k = c[0].shape[0]
     phi0 = free_phi0.copy()
     phi1 = np.zeros((n, 2, nd))
     if k == 0:
         return True, phi0, phi1, np.zeros(0), np.zeros((0, nd))
-    a, b = held[0][sel], held[1][sel]
-    for i in range(k):
-        if not dynamic[a[i]] or dynamic[b[i]]:
-            return False, phi0, phi1, np.zeros(0), np.zeros((0, nd))
     ok, bodies, dv, f = kern.closed_form_mode(
-        normal, r_a, r_b, a, b, dynamic, inv_mass, inv_inertia, friction, sigma, f_mu_d[sel],
+        normal, r_a, r_b, c[3], c[4], dynamic, inv_mass, inv_inertia, friction, sigma, c[10],
         om, radius, tols[5], tols[6], gravity, index, drives[0])
     if not ok:
         return False, phi0, phi1, np.zeros(0), np.zeros((0, nd))
@@ -198,115 +350,106 @@ def _closed_form(sel, friction, sigma, normal, r_a, r_b, om, model, world, held,
 
 
 @numba.njit(**_JIT)
-def _candidates(near, f_vertex, f_piece, sel):
-    """The candidates of a mode: those of ``near`` but the held corners on their pieces."""
-    keep = kern.held_mask(near[0], near[1], f_vertex[sel], f_piece[sel])
-    c = near[2]
-    return (c[0][keep], c[1][keep], c[2][keep], c[3][keep], c[4][keep], c[5][keep],
-            c[6][keep])
+def _candidates(near, c):
+    """The candidates of a mode (vertex, piece, kernel arrays): those of ``near`` but the
+    held corners on their pieces."""
+    keep = kern.held_mask(near[0], near[1], c[0], c[2])
+    a = near[2]
+    return (near[0][keep], near[1][keep], (a[0][keep], a[1][keep], a[2][keep], a[3][keep],
+                                           a[4][keep], a[5][keep], a[6][keep]))
 
 
 @numba.njit(**_JIT)
-def follow(t0, t_stop, h, state, model, world, held, features, mode, near, geometry, scales,
+def follow(t0, t_stop, h, state, model, world, held, mode, near, geometry, materials, scales,
            tols, record):
-    """Follow the held closed-form mode from t0 to t_stop through the mode changes that need
-    nothing but the held contacts (module docstring).
+    """Follow the held closed-form mode from t0 to t_stop through the events one body's own
+    contacts resolve (module docstring).
 
     ``state`` (pos, ang, vel, om) is every body's state at t0, updated in place to the returned
     time. ``model`` (kind, index, free acceleration, drives) and ``world`` (dynamic, inverse
-    mass and inertia, radius, gravity) as ``EventDriven`` holds them. ``held`` are the kernel
-    arrays of the mode's contacts (the first six of ``_Mode.held``) and ``features`` their
-    (vertex, edge, piece, mu_static, mu_dynamic); ``mode`` (friction, sigma, phi0, phi1, f0, f1)
-    the held mode and its phase. ``near`` (vertex, piece, kernel arrays, anchor position,
-    anchor angle, margin) the candidates before the held ones are left out. ``geometry`` is
-    (verts, normals, next vertex, piece start); ``scales`` the event functions' (force, speed,
-    gap); ``tols`` (event threshold, slip tolerance, touch, LCP tolerance, cascade window,
-    spin limit, angular acceleration limit, force and acceleration tolerances of a mode,
-    nearness of a held corner to another edge).
+    mass and inertia, radius, gravity) as ``EventDriven`` holds them; ``held`` the mode's
+    contacts (module docstring) and ``mode`` (friction, sigma, phi0, phi1, f0, f1) their state
+    and phase. ``near`` (vertex, piece, kernel arrays, anchor position, anchor angle, margin)
+    are the candidates before the held ones are left out. ``geometry``: vertices, normals,
+    next and previous vertex, piece start, edge length and whether another piece of its body
+    covers part of an edge; ``materials`` the (n, n) mu_static, mu_dynamic and restitution of
+    body pairs; ``scales`` the event functions' (force, speed, gap); ``tols`` (event threshold,
+    slip tolerance, touch, LCP tolerance, cascade window, spin limit, angular acceleration
+    limit, force and acceleration tolerances of a mode, nearness to another edge, rest speed,
+    friction impulse 1/0).
 
-    Every phase's contact impulses go into ``record`` (vertex, edge, body_a, body_b, point,
-    normal, normal impulse, tangential impulse), a row per contact.
+    Every phase's and collision's contact impulses go into ``record`` (vertex, edge, body_a,
+    body_b, point, normal, normal impulse, tangential impulse), a row per contact.
 
-    Returns ``(status, t, steps, events, rows, sel, friction, sigma, phi0, phi1, f0, f1,
+    Returns ``(status, t, steps, events, rows, held, friction, sigma, phi0, phi1, f0, f1,
     stats)``: DONE at t_stop, EVENT at an event left to the general path (the mode is then
-    void), REFRESH where the candidates must be detected again, PAUSE with the record full; for
-    all but EVENT the held mode is ``sel`` (rows of ``held``) with its friction, slip direction
-    and phase. ``stats``: force LCPs, trivial ones, rows, largest rows, largest residual,
-    deepest penetration (m), pivots.
+    void), REFRESH where the candidates must be detected again; for DONE and REFRESH the held
+    mode that runs on. ``stats`` by the indices at the top of this module.
     """
     pos, ang, vel, om = state
     kind, index = model[0], model[1]
     drives = model[3]
     radius = world[3]
     verts, normals = geometry[0], geometry[1]
-    f_vertex, f_edge, f_piece, f_mu_s, f_mu_d = features
     friction, sigma, phi0, phi1, f0, f1 = mode
-    rec_vertex, rec_edge, rec_a, rec_b, rec_point, rec_normal, rec_pn, rec_pt = record
     threshold, touch_m, cascade_s, near_m = tols[0], tols[2], tols[4], tols[9]
+    capacity = record[6].shape[0]
     n, nd = pos.shape[0], drives[2].shape[0]
     reach = (near[3], near[4], radius, 0.5 * near[5])
-    stats = np.zeros(7)
+    stats = np.zeros(N_STATS)
     acc = np.empty((n, 2))
     p_out, a_out = np.empty((n, 2)), np.empty(n)
     v_out, w_out = np.empty((n, 2)), np.empty(n)
     dvel = np.empty(nd)
-    sel = np.arange(held[0].shape[0])
-    cands = _candidates(near, f_vertex, f_piece, sel)
+    cands = _candidates(near, held)
     t = t0
     steps = events = rows = 0
     while True:
-        k = sel.shape[0]
-        c_a, c_b = held[0][sel], held[1][sel]
-        vloc, q0loc, q1loc, nloc = held[2][sel], held[3][sel], held[4][sel], held[5][sel]
-        _, normal, _, _ = kern.held_geometry(pos, ang, c_a, c_b, vloc, q0loc, q1loc, nloc)
-        group, n_groups = kern.sticking_groups(kern.contact_groups(c_a, c_b, normal), friction)
+        k = held[0].shape[0]
+        _, normal, _, _ = _geometry(pos, ang, held)
+        group, n_groups = kern.sticking_groups(kern.contact_groups(held[3], held[4], normal),
+                                               friction)
         n_slide = 0
         for i in range(k):
             n_slide += friction[i] == kern.SLIDE
-        contacts = (c_a, c_b, vloc, q0loc, q1loc, nloc, f0, f1, friction, sigma, f_mu_s[sel],
-                    group, n_groups)
+        contacts = (held[3], held[4], held[5], held[6], held[7], held[8], f0, f1, friction,
+                    sigma, held[9], group, n_groups)
         bodies = (kind, index, pos.copy(), ang.copy(), vel.copy(), om.copy(), phi0, phi1)
-        first_geometric = k + n_groups + n_slide
-        g = np.empty(first_geometric + 2 * k + cands[0].shape[0])
+        first_param = k + n_groups + n_slide
+        g = np.empty(first_param + 2 * k + cands[0].shape[0])
         status, t_new, taken, offset = kern.advance_watching(
-            t, t_stop, h, threshold, bodies, drives, contacts, cands, verts, normals, scales,
-            reach, p_out, a_out, v_out, w_out, dvel, g)
+            t, t_stop, h, threshold, bodies, drives, contacts, cands[2], verts, normals,
+            scales, reach, p_out, a_out, v_out, w_out, dvel, g)
         steps += taken
         if k:
-            for i in range(k):
-                s = sel[i]
-                rec_vertex[rows], rec_edge[rows] = f_vertex[s], f_edge[s]
-                rec_a[rows], rec_b[rows] = c_a[i], c_b[i]
-                rec_pn[rows] = f0[i] * (t_new - t)
-                rec_pt[rows] = f0[k + i] * (t_new - t)
-                for d in range(nd):
-                    rec_pn[rows] += f1[i, d] * dvel[d]
-                    rec_pt[rows] += f1[k + i, d] * dvel[d]
-                rows += 1
-            point, normal, _, _ = kern.held_geometry(p_out, a_out, c_a, c_b, vloc, q0loc,
-                                                     q1loc, nloc)
-            rec_point[rows - k:rows] = point
-            rec_normal[rows - k:rows] = normal
+            impulse = f0 * (t_new - t) + f1 @ dvel
+            point, normal, _, _ = _geometry(p_out, a_out, held)
+            rows = _record(held, point, normal, impulse, record, rows)
         pos[:], ang[:], vel[:], om[:] = p_out, a_out, v_out, w_out
         started, t = t, t_new
-        if status != EVENT:
+        if status != EVENT or t - started < cascade_s or \
+                _edge_ends_fired(g, offset, first_param, first_param + 2 * k):
             break
-        if t - started < cascade_s or not _regular(g, offset, first_geometric) or \
-                not _only_held_touch(pos, ang, sel, held, f_edge, f_piece, geometry, cands,
-                                     near_m, touch_m):
+        ok, new = _touching(pos, ang, held, cands, world, geometry, materials, near_m, touch_m)
+        # room for every collision impulse and the next phase
+        if not ok or rows + 22 * (k + new[0].shape[0]) > capacity:
             break
-        ok, sel, friction, sigma, normal, r_a, r_b = _mode_at_event(
-            t, sel, pos, ang, vel, om, model, world, held, f_mu_s, f_mu_d, tols, acc, stats)
+        c = _join(held, new) if new[0].shape[0] else held
+        ok, rows = _impacts(c, pos, ang, vel, om, world, tols, stats, record, rows)
         if not ok:
             break
-        ok, phi0, phi1, f0, f1 = _closed_form(sel, friction, sigma, normal, r_a, r_b, om,
-                                              model, world, held, f_mu_d, tols)
+        # the general path chooses the mode again where this cannot: count its LCP only here
+        before = stats.copy()
+        ok, c, friction_new, sigma_new, normal, r_a, r_b = _mode_at_event(
+            t, c, pos, ang, vel, om, model, world, tols, acc, stats)
+        if ok:
+            ok, phi0_new, phi1_new, f0_new, f1_new = _closed_form(
+                c, friction_new, sigma_new, normal, r_a, r_b, om, model, world, tols)
         if not ok:
+            stats[:] = before
             break
+        held, friction, sigma = c, friction_new, sigma_new
+        phi0, phi1, f0, f1 = phi0_new, phi1_new, f0_new, f1_new
         events += 1
-        cands = _candidates(near, f_vertex, f_piece, sel)
-        if rows + sel.shape[0] > rec_pn.shape[0]:
-            status = PAUSE
-            break
-    return (status, t, steps, events, rows, sel, friction, sigma, phi0, phi1, f0, f1,
-            stats)
+        cands = _candidates(near, held)
+    return (status, t, steps, events, rows, held, friction, sigma, phi0, phi1, f0, f1, stats)

@@ -35,20 +35,22 @@ Phases are followed in one of two ways:
   plain sinusoid, and a Python right-hand side that asks the drives takes over.
 
 The kernels are in :mod:`feeder_sim._ed_kernels`. A single dynamic body's closed-form phases
-are chained in compiled code (:mod:`feeder_sim._ed_chain`) through the events after which only
-its held contacts touch (a slip stopping or reversing, static friction giving way, a lift-off):
-its next mode then follows from the force LCP over those contacts alone, and Python sees only
-the other events (collisions, a corner leaving its edge). Candidate collisions are the active corners
-of every piece against every other piece whose bounding box lay within a margin when they were
-detected; they are detected again only when a body may have moved half that margin since (in
-closed form from a bound on the exact velocities, when integrating from a heuristic reach per
-step). A collision is a candidate's gap (the corner's largest signed distance from the piece's
-edge lines) dropping below zero; lines the corner lies flush on with its own piece on their
-inner side are left out, or blocks meeting face-on with aligned corners, every corner on the
-line of a side face of the other block, would never show a negative gap. No step lets a
-corner travel, relative to a candidate piece, farther than its gap plus half the piece's
-minimum width (conservative advancement): a fast part cannot pass through a thin wall between
-two event tests, and a slow or distant one does not shorten the step.
+are chained in compiled code (:mod:`feeder_sim._ed_chain`) through the events its own contacts
+resolve (a slip stopping or reversing, static friction giving way, a lift-off, a corner landing
+on a face): Python then sees only the rest (a corner leaving its edge, touching near a corner,
+an LCP the pivoting misses, a mode without closed form).
+
+Candidate collisions are the active corners of every piece against every other piece whose
+bounding box lay within a margin when they were detected; they are detected again only when a
+body may have moved half that margin since (in closed form from a bound on the exact
+velocities, when integrating from a heuristic reach per step). A collision is a candidate's gap
+(the corner's largest signed distance from the piece's edge lines) dropping below zero; lines
+the corner lies flush on with its own piece on their inner side are left out, or blocks meeting
+face-on with aligned corners, every corner on the line of a side face of the other block, would
+never show a negative gap. No step lets a corner travel, relative to a candidate piece, farther
+than its gap plus half the piece's minimum width (conservative advancement): a fast part cannot
+pass through a thin wall between two event tests, and a slow or distant one does not shorten
+the step.
 
 The impulse and force LCPs first try the final active set of the last pivoting solve of a
 problem of the same shape and keep it when the LCP residual accepts it: the events of a
@@ -291,14 +293,19 @@ class EventDriven:
         self._chained = nd == 1 and self.settings.chained
         self._chain_world = (np.asarray(world.dynamic, dtype=np.bool_), world.inv_mass,
                              world.inv_inertia, radius, np.asarray(world.gravity, dtype=float))
+        covered = topo.edge_internal | (np.diff(topo.cover_start) > 0)
         self._chain_geometry = (self._verts, self._normals,
                                 self._next_vertex.astype(np.int64),
-                                np.asarray(self._piece_start, dtype=np.int64))
+                                self._prev_vertex.astype(np.int64),
+                                np.asarray(self._piece_start, dtype=np.int64),
+                                np.asarray(topo.edge_length, dtype=float),
+                                np.ascontiguousarray(covered, dtype=np.bool_))
         st = self.settings
         self._chain_tols = (_EVENT_THRESHOLD, self._slip_tol, st.touch_m, st.lcp_tol,
                             st.cascade_window_s, _SPIN_FRACTION * self._slip_tol,
                             _ALPHA_REL * g, self._force_scale * 1e-12, 1e-9 * g,
-                            1e3 * st.touch_m)
+                            1e3 * st.touch_m, st.rest_speed_mps,
+                            1.0 if spec.friction_impulse else 0.0)
 
     # ----------------------------------------------------------------- state <-> vector
     def _pack(self, s: State) -> np.ndarray:
@@ -659,8 +666,8 @@ class EventDriven:
         return status == kern.EVENT
 
     def _follow_chain(self, state: State, t_stop: float) -> bool:
-        """``_follow_closed_form`` for a single dynamic body, carried on through the events
-        that only change its mode (:mod:`feeder_sim._ed_chain`)."""
+        """``_follow_closed_form`` for a single dynamic body, carried on through the events its
+        own contacts resolve (:mod:`feeder_sim._ed_chain`)."""
         mode, ph = self._mode, self._mode.phase
         if self._near is None:
             self._near = self._find_candidates(state, self._closed_form_margin())
@@ -668,35 +675,26 @@ class EventDriven:
         t0 = state.t
         out = (state.position.copy(), state.angle.copy(), state.velocity.copy(),
                state.omega.copy())
-        record = (np.empty(_CHAIN_ROWS, np.int64), np.empty(_CHAIN_ROWS, np.int64),
-                  np.empty(_CHAIN_ROWS, np.int64), np.empty(_CHAIN_ROWS, np.int64),
-                  np.empty((_CHAIN_ROWS, 2)), np.empty((_CHAIN_ROWS, 2)),
-                  np.empty(_CHAIN_ROWS), np.empty(_CHAIN_ROWS))
-        status, t_new, steps, events, rows, sel, friction, sigma, phi0, phi1, f0, f1, lcps = \
+        size = max(_CHAIN_ROWS, 64 * f.n)
+        record = (np.empty(size, np.int64), np.empty(size, np.int64), np.empty(size, np.int64),
+                  np.empty(size, np.int64), np.empty((size, 2)), np.empty((size, 2)),
+                  np.empty(size), np.empty(size))
+        held = (f.vertex_a.astype(np.int64), f.edge_b.astype(np.int64),
+                f.piece_b.astype(np.int64), *mode.held[:6],
+                *(np.ascontiguousarray(m, dtype=float) for m in mode.material))
+        status, t_new, steps, events, rows, held, friction, sigma, phi0, phi1, f0, f1, sums = \
             chain.follow(
-                t0, t_stop, self.h_max(), out, (ph.kind, ph.index, self._drives[1][2].phi0,
-                                                ph.drives),
-                self._chain_world, mode.held[:6],
-                (f.vertex_a.astype(np.int64), f.edge_b.astype(np.int64),
-                 f.piece_b.astype(np.int64), mode.material[0], mode.material[1]),
-                (mode.friction.astype(np.int64), mode.sigma.astype(float), ph.phi0, ph.phi1,
-                 ph.f0, ph.f1),
+                t0, t_stop, self.h_max(), out,
+                (ph.kind, ph.index, self._drives[1][2].phi0, ph.drives), self._chain_world,
+                held, (mode.friction.astype(np.int64), mode.sigma.astype(float), ph.phi0,
+                       ph.phi1, ph.f0, ph.f1),
                 (near.vertex.astype(np.int64), near.piece.astype(np.int64), near.arrays,
                  near.anchor_pos, near.anchor_ang, near.margin),
-                self._chain_geometry, (self._force_scale, self._speed, _GAP_SCALE_M),
-                self._chain_tols, record)
+                self._chain_geometry, self._materials,
+                (self._force_scale, self._speed, _GAP_SCALE_M), self._chain_tols, record)
         if status == kern.REFRESH and t_new == t0 and not events:
             return self._follow_closed_form(state, t_stop)   # it widens the candidates' margin
-        st = self.stats
-        st.steps += steps
-        st.events += events
-        st.lcp_solves += int(lcps[0])
-        st.trivial_solves += int(lcps[1])
-        st.lcp_rows += int(lcps[2])
-        st.max_lcp_rows = max(st.max_lcp_rows, int(lcps[3]))
-        st.max_residual = max(st.max_residual, float(lcps[4]))
-        st.max_penetration_m = max(st.max_penetration_m, float(lcps[5]))
-        st.pivots += int(lcps[6])
+        self._count_chain(steps, events, sums)
         d = self._dyn
         state.t = t_new
         state.position[d] = out[0][d]
@@ -709,21 +707,37 @@ class EventDriven:
         if status == kern.EVENT:
             return True
         if events:
-            features = f.take(sel)
-            material = tuple(m[sel] for m in mode.material)
-            normal = kern.held_geometry(state.position, state.angle,
-                                        *(x[sel] for x in mode.held[:6]))[1]
+            point, normal, gap, param = kern.held_geometry(state.position, state.angle,
+                                                           *held[3:9])
+            features = Contacts(held[3], self._vertex_piece[held[0]], held[0], held[4],
+                                held[2], held[1], point, normal, gap, param)
+            material = held[9:]
             group = kern.contact_groups(features.body_a, features.body_b, normal)
-            held, n_events = self._held(features, friction, sigma, group, material[0])
-            mode = self._mode = _Mode(features, friction, sigma, group, material, held,
+            kernel_held, n_events = self._held(features, friction, sigma, group, material[0])
+            mode = self._mode = _Mode(features, friction, sigma, group, material, kernel_held,
                                       n_events)
             mode.phase = _Phase(ph.kind, ph.index, phi0, phi1, ph.drives,
-                                held[:6] + (f0, f1) + held[8:], f0, f1)
+                                kernel_held[:6] + (f0, f1) + kernel_held[8:], f0, f1)
             mode.candidates = near.without(features)
         if status == kern.REFRESH:
             self._near = self._find_candidates(state, near.margin)
             mode.candidates = self._near.without(mode.features)
         return False
+
+    def _count_chain(self, steps: int, events: int, sums: np.ndarray) -> None:
+        """A chain of phases' statistics (``_ed_chain.follow``) into ``self.stats``."""
+        st = self.stats
+        st.steps += steps
+        st.events += events
+        st.lcp_solves += int(sums[chain.N_LCPS])
+        st.trivial_solves += int(sums[chain.N_TRIVIAL])
+        st.lcp_rows += int(sums[chain.LCP_ROWS])
+        st.max_lcp_rows = max(st.max_lcp_rows, int(sums[chain.MAX_ROWS]))
+        st.max_residual = max(st.max_residual, float(sums[chain.MAX_RESIDUAL]))
+        st.max_penetration_m = max(st.max_penetration_m, float(sums[chain.MAX_PENETRATION]))
+        st.pivots += int(sums[chain.PIVOTS])
+        st.impacts += int(sums[chain.IMPACTS])
+        st.energy_fixes += int(sums[chain.ENERGY_FIXES])
 
     def _recorded(self, state: State, record: tuple, rows: int) -> StepContacts:
         """The contact impulses a chain of phases recorded, as one report."""
