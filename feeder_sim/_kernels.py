@@ -333,23 +333,27 @@ def drift(idx, position, angle, velocity, omega, half_h, out_position, out_angle
 
 @numba.njit(**_JIT)
 def speed_bounds(velocity, omega, radius, dynamic):
-    """The largest ``|v| + |omega| r`` (speed bound of a body's points) of the dynamic bodies
-    and of the others, and the largest ``omega^2 r`` of the dynamic bodies: the numpy
-    reductions of ``TimeStepper.margin`` / ``_slip_tol`` (exact: maxima of the same values;
-    NaN propagates)."""
+    """The largest and second largest ``|v| + |omega| r`` (speed bound of a body's points) of
+    the dynamic bodies, the largest of the others, and the largest ``omega^2 r`` of the
+    dynamic bodies: the numpy reductions of ``TimeStepper.margin`` / ``_slip_tol`` (exact:
+    maxima of the same values; NaN propagates)."""
     v_dyn = 0.0
+    v_dyn2 = 0.0
     v_other = 0.0
     spin = 0.0
     for i in range(velocity.shape[0]):
         s = (np.sqrt(velocity[i, 0] * velocity[i, 0] + velocity[i, 1] * velocity[i, 1])
              + abs(omega[i]) * radius[i])
         if dynamic[i]:
-            v_dyn = s if s > v_dyn or s != s else v_dyn
+            if s > v_dyn or s != s:
+                v_dyn, v_dyn2 = s, v_dyn
+            elif s > v_dyn2:
+                v_dyn2 = s
             q = omega[i] * omega[i] * radius[i]
             spin = q if q > spin or q != q else spin
         else:
             v_other = s if s > v_other or s != s else v_other
-    return v_dyn, v_other, spin
+    return v_dyn, v_dyn2, v_other, spin
 
 
 @numba.njit(**_JIT)

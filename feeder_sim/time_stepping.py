@@ -285,20 +285,26 @@ class TimeStepper:
         # contacts of this step left out of the velocity solve, with the midpoint positions
         # (for the projection; see _with_spare)
         self._spare: tuple[Contacts, np.ndarray] | None = None
-        # feature key -> approach speed (m/s, < 0) of a contact whose speculative row held the
-        # part back last step: its Newton row bounces the speed it came in with
-        self._approach: dict[int, float] = {}
+        # body pair -> the pair's (vx, vy, omega) before a speculative row held it back last
+        # step: its Newton rows bounce the speed it came in with
+        self._approach: dict[tuple[int, int], np.ndarray] = {}
         self._geo: _IslandGeometry | None = None
 
     def margin(self, state: State, h: float) -> float:
         """Distance a vertex can close on any edge in one step (m): contacts to look at."""
         w = self.world
-        # max over dynamic / other bodies of sqrt(vx^2 + vy^2) + |omega| r, in one kernel
-        v_max, v_kin, _ = K.speed_bounds(state.velocity, state.omega, self._radius, self._dyn)
+        # the two fastest dynamic bodies and the fastest other one (sqrt(vx^2 + vy^2) +
+        # |omega| r), in one kernel
+        v_max, v_next, v_kin, _ = K.speed_bounds(state.velocity, state.omega, self._radius,
+                                                 self._dyn)
         for i in self._driven:
             d = w.drives[i]
             v_kin = max(v_kin, 2 * np.pi * d.frequency_hz * d.amplitude_m * 2)
-        return 1.5 * h * (v_max + v_kin + self._g * h) + 10 * self.settings.touch_m
+        # any pair closes at most at the fastest body's speed plus the faster of the next
+        # dynamic one and the fastest other: two parts thrown at each other close at twice
+        # their speed
+        return 1.5 * h * (v_max + max(v_next, v_kin) + self._g * h) + \
+            10 * self.settings.touch_m
 
     def step(self, state: State, h: float | None = None) -> StepContacts | None:
         """Advance ``state`` in place by h (default: the scene's time step)."""
@@ -347,7 +353,7 @@ class TimeStepper:
         sliding, so a real slip is never held back).
         """
         # max over dynamic bodies of omega^2 r
-        _, _, spin = K.speed_bounds(state.velocity, state.omega, self._radius, self._dyn)
+        spin = K.speed_bounds(state.velocity, state.omega, self._radius, self._dyn)[3]
         return max(self.settings.slip_tol_mps, h * spin)
 
     def _project(self, cs: ContactSet, state: State, mask: np.ndarray) -> None:
@@ -532,7 +538,7 @@ class TimeStepper:
             # speculative rows: neither a pile's nor a Newton row (the kernel's index set)
             spec = ~pile & (c.gap > st.touch_m) & (c.gap + 0.5 * h * v_n_free > st.touch_m)
             if self._approach:
-                b_n = self._restore_approach(cs, keys, b_n, ~pile & ~spec & bouncy, state)
+                b_n = self._restore_approach(cs, b_n, ~pile & ~spec & bouncy, state)
 
         order, starts = geo.order, geo.starts
         n_isl = len(starts) - 1
@@ -561,38 +567,52 @@ class TimeStepper:
             np.add(end.velocity, dv[:, :2], out=end.velocity, where=self._dyn_col)
             np.add(end.omega, dv[:, 2], out=end.omega, where=self._dyn)
         stats.impacts += int(np.count_nonzero(colliding & (p_n > 0)))
-        self._approach = (self._held_back(cs, keys, spec & bouncy & (p_n > 0.0), state)
+        self._approach = (self._held_back(cs, spec & bouncy & (p_n > 0.0), state)
                           if bouncy.any() else {})
         self._warm.store(keys, p_n, p_t)
         return StepContacts(cs, p_n, p_t)
 
-    def _held_back(self, cs: ContactSet, keys: np.ndarray, held: np.ndarray,
-                   state: State) -> dict[int, float]:
-        """Approach speeds (m/s) of the ``held`` contacts (speculative rows that pushed):
-        their parts arrive slowed to what the row allowed, and the collision next step must
-        bounce the speed they came in with (10 m/s at e = 0.5 left at 4.81, not 5 m/s)."""
-        idx = np.flatnonzero(held)
-        if not len(idx):
-            return {}
+    def _held_back(self, cs: ContactSet, held: np.ndarray,
+                   state: State) -> dict[tuple[int, int], np.ndarray]:
+        """Velocities before the push of the body pairs whose speculative rows pushed
+        (``held``): ``(lower body, upper body) -> (vx, vy, omega)`` of each, from the first step
+        that held them back. Their parts arrive slowed to what the row allowed, and the
+        collision must bounce the speed they came in with (10 m/s at e = 0.5 left at 4.81, not
+        5 m/s). Kept per body pair, not per contact: the collision may be found on another
+        vertex-edge pair than the one that held the part back (two parts thrown face to face)."""
         c = cs.contacts
-        v_n, _ = K.contact_velocities(c.body_a[idx], c.body_b[idx], c.normal[idx], cs.r_a[idx],
-                                      cs.r_b[idx], state.velocity, state.omega)
         before = self._approach
-        return {k: min(v, before.get(k, v)) for k, v in zip(keys[idx].tolist(), v_n.tolist())}
+        out: dict[tuple[int, int], np.ndarray] = {}
+        for a, b in zip(c.body_a[held].tolist(), c.body_b[held].tolist()):
+            pair = (min(a, b), max(a, b))
+            if pair not in out:
+                out[pair] = before.get(pair, np.array([[*state.velocity[i], state.omega[i]]
+                                                       for i in pair]))
+        return out
 
-    def _restore_approach(self, cs: ContactSet, keys: np.ndarray, b_n: np.ndarray,
-                          newton: np.ndarray, state: State) -> np.ndarray:
-        """``b_n`` with the Newton rows of contacts held back last step using the approach
-        speed from before (``_held_back``) in ``e min(v_N, 0)``."""
+    def _restore_approach(self, cs: ContactSet, b_n: np.ndarray, newton: np.ndarray,
+                          state: State) -> np.ndarray:
+        """``b_n`` with the Newton rows of the pairs held back before (``_held_back``) using
+        the normal velocity those velocities give at the contact in ``e min(v_N, 0)``."""
         known = self._approach
-        idx = [i for i in np.flatnonzero(newton).tolist() if int(keys[i]) in known]
-        if not idx:
-            return b_n
-        idx = np.array(idx)
         c = cs.contacts
-        v_now, _ = K.contact_velocities(c.body_a[idx], c.body_b[idx], c.normal[idx],
-                                        cs.r_a[idx], cs.r_b[idx], state.velocity, state.omega)
-        came_in = np.array([known[int(k)] for k in keys[idx]])
+        idx = np.array([i for i in np.flatnonzero(newton).tolist()
+                        if (min(c.body_a[i], c.body_b[i]), max(c.body_a[i], c.body_b[i]))
+                        in known], dtype=int)
+        if not len(idx):
+            return b_n
+        a, b = c.body_a[idx], c.body_b[idx]
+        v_now, _ = K.contact_velocities(a, b, c.normal[idx], cs.r_a[idx], cs.r_b[idx],
+                                        state.velocity, state.omega)
+        velocity, omega = state.velocity.copy(), state.omega.copy()
+        came_in = np.empty(len(idx))
+        for j, i in enumerate(idx.tolist()):
+            pair = (min(a[j], b[j]), max(a[j], b[j]))
+            velocity[list(pair)] = known[pair][:, :2]
+            omega[list(pair)] = known[pair][:, 2]
+            came_in[j] = K.contact_velocities(a[j:j + 1], b[j:j + 1], c.normal[i:i + 1],
+                                              cs.r_a[i:i + 1], cs.r_b[i:i + 1], velocity,
+                                              omega)[0][0]
         b_n = b_n.copy()
         b_n[idx] += cs.restitution[idx] * (np.minimum(np.minimum(came_in, v_now), 0.0)
                                            - np.minimum(v_now, 0.0))
