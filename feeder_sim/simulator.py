@@ -179,7 +179,13 @@ class Simulator:
                 self._log.add(report)
 
     def command_vibration(self, amplitude_m: float, frequency_hz: float) -> None:
-        """New amplitude (m) and frequency (Hz) for every vibrating body, from now on."""
+        """New amplitude (m) and frequency (Hz) for every vibrating body, from now on.
+
+        A command that changes nothing (a controller republishing its setpoint) leaves the
+        motion and the stepper as they are."""
+        drives = [self.world.drives[i] for i in self.world.driven]
+        if all(d.amplitude_m == amplitude_m and d.frequency_hz == frequency_hz for d in drives):
+            return
         for i in self.world.driven:
             self.world.drives[i].command(self.state.t, amplitude_m, frequency_hz)
         self.world.apply_prescribed_motion(self.state)

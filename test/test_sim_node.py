@@ -463,5 +463,9 @@ def test_a_command_flood_does_not_stall_the_simulation(graph):
     graph.spin_for(0.2)
     drive = node.sim.world.drives[node.sim.world.driven[0]]
     assert drive.amplitude_m == 3e-4
-    assert flood_rate > 0.3 * calm_rate, (flood_rate, calm_rate)
+    # Under the flood the simulation must keep faster than real time (the node's default
+    # pace), sharing the two cores with the flooding process and the DDS threads. (Not a
+    # fraction of the calm rate: that grows with every speed-up of the physics, while what a
+    # flood costs, the middleware's work per message, does not.)
+    assert flood_rate > 1.0, (flood_rate, calm_rate)
     assert service_latency < 2.0
