@@ -333,27 +333,35 @@ def drift(idx, position, angle, velocity, omega, half_h, out_position, out_angle
 
 @numba.njit(**_JIT)
 def speed_bounds(velocity, omega, radius, dynamic):
-    """The largest and second largest ``|v| + |omega| r`` (speed bound of a body's points) of
-    the dynamic bodies, the largest of the others, and the largest ``omega^2 r`` of the
-    dynamic bodies: the numpy reductions of ``TimeStepper.margin`` / ``_slip_tol`` (exact:
-    maxima of the same values; NaN propagates)."""
+    """The largest ``|v| + |omega| r`` (speed bound of a body's points) of the dynamic bodies
+    and of the others, the largest ``omega^2 r`` of the dynamic bodies, and a bound on the
+    speed at which points of two dynamic bodies close on each other (twice the largest
+    ``|v - c| + |omega| r``, c the centre of the dynamic velocities' bounding box): the
+    reductions of ``TimeStepper.margin`` / ``_slip_tol`` (NaN propagates)."""
     v_dyn = 0.0
-    v_dyn2 = 0.0
     v_other = 0.0
     spin = 0.0
+    lo_x = lo_y = np.inf
+    hi_x = hi_y = -np.inf
     for i in range(velocity.shape[0]):
         s = (np.sqrt(velocity[i, 0] * velocity[i, 0] + velocity[i, 1] * velocity[i, 1])
              + abs(omega[i]) * radius[i])
         if dynamic[i]:
-            if s > v_dyn or s != s:
-                v_dyn, v_dyn2 = s, v_dyn
-            elif s > v_dyn2:
-                v_dyn2 = s
+            v_dyn = s if s > v_dyn or s != s else v_dyn
             q = omega[i] * omega[i] * radius[i]
             spin = q if q > spin or q != q else spin
+            lo_x, hi_x = min(lo_x, velocity[i, 0]), max(hi_x, velocity[i, 0])
+            lo_y, hi_y = min(lo_y, velocity[i, 1]), max(hi_y, velocity[i, 1])
         else:
             v_other = s if s > v_other or s != s else v_other
-    return v_dyn, v_dyn2, v_other, spin
+    cx, cy = 0.5 * (lo_x + hi_x), 0.5 * (lo_y + hi_y)
+    spread = 0.0
+    for i in range(velocity.shape[0]):
+        if dynamic[i]:
+            s = (np.sqrt((velocity[i, 0] - cx) ** 2 + (velocity[i, 1] - cy) ** 2)
+                 + abs(omega[i]) * radius[i])
+            spread = s if s > spread or s != s else spread
+    return v_dyn, v_other, spin, 2.0 * spread
 
 
 @numba.njit(**_JIT)

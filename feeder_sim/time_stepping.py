@@ -290,21 +290,38 @@ class TimeStepper:
         self._approach: dict[tuple[int, int], np.ndarray] = {}
         self._geo: _IslandGeometry | None = None
 
-    def margin(self, state: State, h: float) -> float:
-        """Distance a vertex can close on any edge in one step (m): contacts to look at."""
+    def margin(self, state: State, h: float) -> tuple[float, float]:
+        """Distances a vertex can close on an edge in one step (m): ``(search, base)``.
+
+        ``base`` is 1.5 steps of the fastest body's travel plus the fastest other's (the
+        track's); ``search`` also covers two parts closing on each other faster than that
+        (thrown at each other), and is the contact search's margin. Beyond ``base`` only the
+        contacts of pairs that can close that far are kept (``_within_reach``)."""
         w = self.world
-        # the two fastest dynamic bodies and the fastest other one (sqrt(vx^2 + vy^2) +
-        # |omega| r), in one kernel
-        v_max, v_next, v_kin, _ = K.speed_bounds(state.velocity, state.omega, self._radius,
-                                                 self._dyn)
+        v_max, v_kin, _, closing = K.speed_bounds(state.velocity, state.omega, self._radius,
+                                                  self._dyn)
         for i in self._driven:
             d = w.drives[i]
             v_kin = max(v_kin, 2 * np.pi * d.frequency_hz * d.amplitude_m * 2)
-        # any pair closes at most at the fastest body's speed plus the faster of the next
-        # dynamic one and the fastest other: two parts thrown at each other close at twice
-        # their speed
-        return 1.5 * h * (v_max + max(v_next, v_kin) + self._g * h) + \
-            10 * self.settings.touch_m
+        slack = 10 * self.settings.touch_m
+        base = 1.5 * h * (v_max + v_kin + self._g * h) + slack
+        return 1.5 * h * (max(v_max + v_kin, closing) + self._g * h) + slack, base
+
+    def _within_reach(self, contacts: Contacts, state: State, h: float,
+                      base: float) -> Contacts:
+        """The contacts within ``base`` (see ``margin``), and those beyond it between two
+        parts whose relative motion can close the gap in one step. Parts falling together
+        are far from closing: their contacts would only join islands (a pile's, solved as
+        one)."""
+        far = contacts.gap > base
+        if not far.any():
+            return contacts
+        a, b = contacts.body_a, contacts.body_b
+        v, spin = state.velocity, np.abs(state.omega) * self._radius
+        closing = np.hypot(*(v[a] - v[b]).T) + spin[a] + spin[b]
+        reach = 1.5 * h * (closing + self._g * h) + 10 * self.settings.touch_m
+        both = self.world.dynamic[a] & self.world.dynamic[b]
+        return _take(contacts, np.flatnonzero(~far | (both & (contacts.gap <= reach))))
 
     def step(self, state: State, h: float | None = None) -> StepContacts | None:
         """Advance ``state`` in place by h (default: the scene's time step)."""
@@ -326,8 +343,10 @@ class TimeStepper:
         np.add(end.velocity, h * w.gravity, out=end.velocity, where=self._dyn_col)
         w.apply_prescribed_motion(end)
 
-        margin = self.margin(state, h)
+        margin, base = self.margin(state, h)
         contacts = find_contacts(w.shapes, mid.position, mid.angle, self._dyn, margin=margin)
+        if contacts.n and margin > base:
+            contacts = self._within_reach(contacts, state, h, base)
         report = self._contacts(contacts, state, mid, end, h, margin) if contacts.n else None
 
         state.t = end.t
@@ -353,7 +372,7 @@ class TimeStepper:
         sliding, so a real slip is never held back).
         """
         # max over dynamic bodies of omega^2 r
-        spin = K.speed_bounds(state.velocity, state.omega, self._radius, self._dyn)[3]
+        spin = K.speed_bounds(state.velocity, state.omega, self._radius, self._dyn)[2]
         return max(self.settings.slip_tol_mps, h * spin)
 
     def _project(self, cs: ContactSet, state: State, mask: np.ndarray) -> None:
