@@ -99,7 +99,8 @@ _GAP_SCALE_M = 1e-3   # gaps fire at -1e-12 m
 # gives it no angular acceleration beyond round-off (relative to g over its radius).
 _SPIN_FRACTION = 1e-3
 _ALPHA_REL = 1e-12
-# Rows of contact impulses one compiled chain of phases records before it pauses.
+# Rows of contact impulses a compiled chain of phases can record; near full, it hands the next
+# event back to the general path.
 _CHAIN_ROWS = 512
 
 # Dormand–Prince 5(4) tableau (Dormand & Prince 1980); the 5th-order row is also the FSAL row.
@@ -128,9 +129,9 @@ class EventSettings:
     max_events_at_one_time: int = 50
     cascade_window_s: float = 1e-6   # events closer than this in time count as one cascade
     max_give_way_s: float = 1e-5     # longest step taken past a persisting cascade
-    # One dynamic body: follow its closed-form phases through the mode changes that need only
-    # the held contacts in compiled code (:mod:`feeder_sim._ed_chain`); False takes each event
-    # through the general path (the same answers to round-off, several times slower).
+    # One dynamic body: follow its closed-form phases through the events its own contacts
+    # resolve in compiled code (:mod:`feeder_sim._ed_chain`); False takes each event through
+    # the general path (the same answers to round-off, several times slower).
     chained: bool = True
 
 
@@ -289,7 +290,7 @@ class EventDriven:
                              np.zeros((0, 0)), none_i, none_f, none_f, none_i, 0)
         self._out = (np.zeros((world.n, 2)), np.zeros(world.n), np.zeros((world.n, 2)),
                      np.zeros(world.n))
-        # One dynamic body: its closed-form phases run chained through mode changes (_ed_chain).
+        # One dynamic body: its closed-form phases run chained through its events (_ed_chain).
         self._chained = nd == 1 and self.settings.chained
         self._chain_world = (np.asarray(world.dynamic, dtype=np.bool_), world.inv_mass,
                              world.inv_inertia, radius, np.asarray(world.gravity, dtype=float))
