@@ -149,20 +149,15 @@ def _touching(pos, ang, held, cands, world, geometry, materials, near_m, touch_m
             return False, nothing
         px, py = kern.world_point(pos, ang, a, verts[v])
         cb, sb = math.cos(ang[b]), math.sin(ang[b])
-        best, second, e_best = -np.inf, -np.inf, -1
+        best, second, e_best, nx, ny = -np.inf, -np.inf, -1, 0.0, 0.0
         for e in range(cp_start[i], cp_end[i]):
-            q0x, q0y = kern.world_point(pos, ang, b, verts[e])
-            nx = cb * normals[e, 0] - sb * normals[e, 1]
-            ny = sb * normals[e, 0] + cb * normals[e, 1]
-            d = nx * (px - q0x) + ny * (py - q0y)
+            d, ex, ey = kern.edge_line_distance(px, py, pos, cb, sb, b, e, verts, normals)
             if d > best:
-                best, second, e_best = d, best, e
+                best, second, e_best, nx, ny = d, best, e, ex, ey
             elif d > second:
                 second = d
         if second > -near_m or best < -near_m or covered[e_best]:
             return False, nothing
-        nx = cb * normals[e_best, 0] - sb * normals[e_best, 1]
-        ny = sb * normals[e_best, 0] + cb * normals[e_best, 1]
         # both neighbours of the corner on the edge's outer side (as contact detection asks)
         for w, edge in ((prev_vertex[v], prev_vertex[v]), (next_vertex[v], v)):
             ux, uy = kern.world_point(pos, ang, a, verts[w])

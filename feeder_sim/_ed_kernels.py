@@ -92,17 +92,24 @@ def _poses(t, t0, kind, index, pos0, ang0, vel0, om0, phi0, phi1, dr_u, dr_base,
 
 
 @numba.njit(**_JIT)
+def edge_line_distance(px, py, pos, c, s, pbody, j, verts, normals):
+    """Signed distance (m) of the world point (px, py) from the line of edge ``j`` of body
+    ``pbody`` (turned by cos c, sin s), and the edge's world normal."""
+    qx = pos[pbody, 0] + c * verts[j, 0] - s * verts[j, 1]
+    qy = pos[pbody, 1] + s * verts[j, 0] + c * verts[j, 1]
+    nx = c * normals[j, 0] - s * normals[j, 1]
+    ny = s * normals[j, 0] + c * normals[j, 1]
+    return nx * (px - qx) + ny * (py - qy), nx, ny
+
+
+@numba.njit(**_JIT)
 def _vertex_piece_gap(pos, ang, vbody, local, pbody, start, end, verts, normals):
     """Largest signed distance (m) of a corner from a convex piece's edge lines."""
     px, py = world_point(pos, ang, vbody, local)
     c, s = math.cos(ang[pbody]), math.sin(ang[pbody])
     best = -np.inf
     for j in range(start, end):
-        qx = pos[pbody, 0] + c * verts[j, 0] - s * verts[j, 1]
-        qy = pos[pbody, 1] + s * verts[j, 0] + c * verts[j, 1]
-        nx = c * normals[j, 0] - s * normals[j, 1]
-        ny = s * normals[j, 0] + c * normals[j, 1]
-        d = nx * (px - qx) + ny * (py - qy)
+        d = edge_line_distance(px, py, pos, c, s, pbody, j, verts, normals)[0]
         if d > best:
             best = d
     return best
@@ -122,11 +129,7 @@ def _gap_off_flush(pos, ang, vbody, local, wedge, pbody, start, end, verts, norm
     c, s = math.cos(ang[pbody]), math.sin(ang[pbody])
     inner = -np.inf
     for j in range(start, end):
-        qx = pos[pbody, 0] + c * verts[j, 0] - s * verts[j, 1]
-        qy = pos[pbody, 1] + s * verts[j, 0] + c * verts[j, 1]
-        nx = c * normals[j, 0] - s * normals[j, 1]
-        ny = s * normals[j, 0] + c * normals[j, 1]
-        d = nx * (px - qx) + ny * (py - qy)
+        d, nx, ny = edge_line_distance(px, py, pos, c, s, pbody, j, verts, normals)
         if d > inner and not (abs(d) <= FLUSH_M and _flush(ca, sa, wedge, nx, ny)):
             inner = d
     return inner if inner > -np.inf else best
