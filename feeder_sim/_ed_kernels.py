@@ -156,13 +156,38 @@ def _flush(c, s, wedge, nx, ny):
 def candidate_gaps(pos, ang, cv_body, cv_local, cp_body, cp_start, cp_end, cv_wedge, cp_width,
                    verts, normals, out):
     """Gap (m) of every candidate vertex against its piece: > 0 outside, < 0 inside."""
+    cands = (cv_body, cv_local, cp_body, cp_start, cp_end, cv_wedge, cp_width)
     for i in range(cv_body.shape[0]):
-        d = _vertex_piece_gap(pos, ang, cv_body[i], cv_local[i], cp_body[i], cp_start[i],
-                              cp_end[i], verts, normals)
-        if abs(d) <= FLUSH_M:
-            d = _gap_off_flush(pos, ang, cv_body[i], cv_local[i], cv_wedge[i], cp_body[i],
-                               cp_start[i], cp_end[i], verts, normals, d)
-        out[i] = d
+        out[i] = _candidate_gap(pos, ang, cands, i, verts, normals)
+
+
+@numba.njit(**_JIT)
+def _candidate_gap(pos, ang, cands, i, verts, normals):
+    """Collision gap (m) of candidate ``i``: the corner's largest distance from its piece's
+    edge lines, leaving out those it lies flush on (``_gap_off_flush``)."""
+    cv_body, cv_local, cp_body, cp_start, cp_end, cv_wedge, _ = cands
+    d = _vertex_piece_gap(pos, ang, cv_body[i], cv_local[i], cp_body[i], cp_start[i],
+                          cp_end[i], verts, normals)
+    if abs(d) <= FLUSH_M:
+        d = _gap_off_flush(pos, ang, cv_body[i], cv_local[i], cv_wedge[i], cp_body[i],
+                           cp_start[i], cp_end[i], verts, normals, d)
+    return d
+
+
+@numba.njit(**_JIT)
+def _geometric_events(params, cands, pos, ang, verts, normals, gap_scale, g, j):
+    """The last event functions of a held mode from ``g[j]`` on: each held contact's edge
+    parameter and its distance from 1 (both must stay >= 0), then each candidate's gap in
+    units of ``gap_scale`` (m)."""
+    for i in range(params.shape[0]):
+        g[j] = params[i]
+        j += 1
+    for i in range(params.shape[0]):
+        g[j] = 1.0 - params[i]
+        j += 1
+    for i in range(cands[0].shape[0]):
+        g[j] = _candidate_gap(pos, ang, cands, i, verts, normals) / gap_scale
+        j += 1
 
 
 @numba.njit(**_JIT)
@@ -211,7 +236,6 @@ def _events(t, t0, bodies, drives, contacts, cands, verts, normals, scales, pos,
     dr_u, dr_base, dr_amp, dr_w, dr_phase, t_ref = drives
     (c_a, c_b, vloc, q0loc, q1loc, nloc, f0, f1, friction, sigma, mu_s, group,
      n_groups) = contacts
-    cv_body, cv_local, cp_body, cp_start, cp_end, cv_wedge, _ = cands
     force_scale, speed_scale, gap_scale = scales
     _poses(t, t0, kind, index, pos0, ang0, vel0, om0, phi0, phi1, dr_u, dr_base, dr_amp, dr_w,
            dr_phase, t_ref, pos, ang, vel, om, acc_drive, dvel_drive)
@@ -232,20 +256,7 @@ def _events(t, t0, bodies, drives, contacts, cands, verts, normals, scales, pos,
         if friction[i] == SLIDE:
             g[j] = sigma[i] * v_t / speed_scale
             j += 1
-    for i in range(k):
-        g[j] = params[i]
-        j += 1
-    for i in range(k):
-        g[j] = 1.0 - params[i]
-        j += 1
-    for i in range(cv_body.shape[0]):
-        d = _vertex_piece_gap(pos, ang, cv_body[i], cv_local[i], cp_body[i], cp_start[i],
-                              cp_end[i], verts, normals)
-        if abs(d) <= FLUSH_M:
-            d = _gap_off_flush(pos, ang, cv_body[i], cv_local[i], cv_wedge[i], cp_body[i],
-                               cp_start[i], cp_end[i], verts, normals, d)
-        g[j] = d / gap_scale
-        j += 1
+    _geometric_events(params, cands, pos, ang, verts, normals, gap_scale, g, j)
 
 
 @numba.njit(**_JIT)
@@ -985,21 +996,7 @@ def _mode_rhs(t, y, spec, pos, ang, vel, om, acc, dydt, g, f):
         if friction[i] == SLIDE:
             g[j] = sigma[i] * v_t[i] / speed_scale
             j += 1
-    for i in range(k):
-        g[j] = params[i]
-        j += 1
-    for i in range(k):
-        g[j] = 1.0 - params[i]
-        j += 1
-    cv_body, cv_local, cp_body, cp_start, cp_end, cv_wedge, _ = cands
-    for i in range(cv_body.shape[0]):
-        d = _vertex_piece_gap(pos, ang, cv_body[i], cv_local[i], cp_body[i], cp_start[i],
-                              cp_end[i], verts, normals)
-        if abs(d) <= FLUSH_M:
-            d = _gap_off_flush(pos, ang, cv_body[i], cv_local[i], cv_wedge[i], cp_body[i],
-                               cp_start[i], cp_end[i], verts, normals, d)
-        g[j] = d / gap_scale
-        j += 1
+    _geometric_events(params, cands, pos, ang, verts, normals, gap_scale, g, j)
 
 
 @numba.njit(**_JIT)
