@@ -41,7 +41,7 @@ setup(
     entry_points={
         'console_scripts': [
             'feeder-sim = feeder_sim.cli:main',
-            'sim_node = feeder_sim.node_entry:main',
+            'sim_node = feeder_sim.ros.entry:main',
         ],
     },
 )

@@ -1,7 +1,7 @@
 """Work-precision benchmark: mean conveying speed of one box on a vibrating track.
 
 Case: one box (20 x 10 mm, 10 g) on a 50 Hz, 1 mm (0-peak), psi = 20 deg, theta = 0 track,
-mu = 0.5. The reference is the point-mass solver (feeder_sim.pointmass) over the same cycle
+mu = 0.5. The reference is the point-mass solver (feeder_sim.reports.pointmass) over the same cycle
 window; a flat box that does not rotate moves like the point mass.
 
 Sweeps event_driven over the event/integration tolerance and time_stepping over the step
@@ -27,8 +27,8 @@ import time
 
 import numpy as np
 
-from feeder_sim.builders import build, conveyor
-from feeder_sim.pointmass import Conveyor, mean_speed
+from feeder_sim.model.builders import build, conveyor
+from feeder_sim.reports.pointmass import Conveyor, mean_speed
 from feeder_sim.simulator import Simulator
 
 FREQUENCY_HZ = 50.0
@@ -271,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
                  'gamma': gamma(), 'g': G},
         'mode': 'quick' if args.quick else 'full',
         'warmup_cycles': warmup, 'measured_cycles': measured, 'repeats': repeats,
-        'reference': {'solver': 'feeder_sim.pointmass', 'mean_speed_m_s': reference,
+        'reference': {'solver': 'feeder_sim.reports.pointmass', 'mean_speed_m_s': reference,
                       'steady_state_mean_speed_m_s': steady},
         'box_rotates': rotates,
         'box_rotates_in': {m: [r['label'] for r in rot] for m, rot in rotating.items()},

@@ -7,7 +7,7 @@ For every scene and method: wall time per simulated second (median over ``--repe
 the position after 1 s (Fig. 7's number), the mean conveying speed over 2 s after a 1 s
 warm-up (on the 3 degree ramp without the friction impulse the part slides back faster and
 faster: no steady state, so only the positions at 1 s compare) and, as the reference, the
-exact point-mass speed of ``feeder_sim.pointmass`` with the same friction-impulse setting.
+exact point-mass speed of ``feeder_sim.reports.pointmass`` with the same friction-impulse setting.
 ``event_driven`` and ``impulse_based`` run with the scene's solver settings (largest step
 1/256 s, tolerance 1e-9); ``time_stepping`` at 400 steps per vibration period.
 
@@ -26,9 +26,9 @@ import time
 
 from conveying import machine_info, source_info
 
-from feeder_sim.paper import _conveyor, steady_speed, TRACK_SCENES
-from feeder_sim.pointmass import mean_speed
-from feeder_sim.scene import load_scene
+from feeder_sim.model.scene import load_scene
+from feeder_sim.reports.paper import _conveyor, steady_speed, TRACK_SCENES
+from feeder_sim.reports.pointmass import mean_speed
 from feeder_sim.simulator import Simulator
 
 METHODS = ('event_driven', 'impulse_based', 'time_stepping')

@@ -42,11 +42,11 @@ from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 import yaml  # noqa: E402
 
-from feeder_sim.builders import build, conveyor  # noqa: E402
-from feeder_sim.recording import McapRecorder  # noqa: E402
+from feeder_sim.model.builders import build, conveyor  # noqa: E402
+from feeder_sim.model.scene import scene_to_dict  # noqa: E402
+from feeder_sim.output.recording import McapRecorder  # noqa: E402
+from feeder_sim.ros.node import SimNode  # noqa: E402
 from feeder_sim.run import Frame, record_frame  # noqa: E402
-from feeder_sim.scene import scene_to_dict  # noqa: E402
-from feeder_sim.sim_node import SimNode  # noqa: E402
 from feeder_sim.simulator import Simulator  # noqa: E402
 
 SCENE = 'track_one_box'

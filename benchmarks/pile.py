@@ -3,7 +3,8 @@
 Issue target: 200 parts, ``time_stepping`` at dt = 1 ms, <= 2 s wall time per simulated second,
 nothing tunnels out, cost per step about linear in the number of parts (10, 50, 200).
 
-The scene is ``feeder_sim.builders.conveyor(..., walls=True, track_length=1.0)`` with the parts
+The scene is ``feeder_sim.model.builders.conveyor(..., walls=True, track_length=1.0)``
+with the parts
 moved into staggered rows above the track (small deterministic random tilts and offsets), so
 they fall from up to ~0.15 m and pile up between the walls (200 parts of 20 mm need four
 layers on a 1 m track). Run from the repository root::
@@ -44,7 +45,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from feeder_sim.builders import build, conveyor  # noqa: E402
+from feeder_sim.model.builders import build, conveyor  # noqa: E402
 from feeder_sim.simulator import Simulator  # noqa: E402
 
 TRACK_LENGTH = 1.0

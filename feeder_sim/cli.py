@@ -42,7 +42,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _scenes(_: argparse.Namespace) -> int:
-    from feeder_sim.scene import scene_dirs, shipped_scenes
+    from feeder_sim.model.scene import scene_dirs, shipped_scenes
 
     for name in shipped_scenes():
         print(name)
@@ -52,7 +52,7 @@ def _scenes(_: argparse.Namespace) -> int:
 
 def _replay(args: argparse.Namespace) -> int:
     try:
-        from feeder_sim.replay import replay
+        from feeder_sim.output.replay import replay
     except ImportError as err:  # rerun-sdk is the optional 'replay' extra
         raise NotImplementedError(
             f"replay needs rerun-sdk (pip install 'feeder_sim[replay]'): {err}") from err
@@ -64,7 +64,7 @@ def _replay(args: argparse.Namespace) -> int:
 
 
 def _paper(args: argparse.Namespace) -> int:
-    from feeder_sim.paper import FIGURES, paper
+    from feeder_sim.reports.paper import FIGURES, paper
 
     figures = args.only.split(',') if args.only else FIGURES
     results = paper(args.out, figures)
@@ -79,7 +79,7 @@ def _split(text: str | None) -> list[str] | None:
 
 
 def _accuracy(args: argparse.Namespace) -> int:
-    from feeder_sim.accuracy import CASES, run_accuracy
+    from feeder_sim.reports.accuracy import CASES, run_accuracy
 
     if args.list:
         for key, case in CASES.items():
@@ -94,7 +94,7 @@ def _accuracy(args: argparse.Namespace) -> int:
 
 
 def _stability(args: argparse.Namespace) -> int:
-    from feeder_sim.stability import run_stability, SCENES
+    from feeder_sim.reports.stability import run_stability, SCENES
 
     if args.list:
         for key, case in SCENES.items():

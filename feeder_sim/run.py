@@ -17,8 +17,8 @@ import time
 import numpy as np
 
 from feeder_sim import __version__
-from feeder_sim.outcomes import OutcomeTracker, progress
-from feeder_sim.scene import scene_to_dict
+from feeder_sim.model.scene import scene_to_dict
+from feeder_sim.output.outcomes import OutcomeTracker, progress
 from feeder_sim.simulator import ContactReport, Simulator
 
 log = logging.getLogger('feeder_sim')
@@ -77,7 +77,7 @@ def recording_metadata(sim: Simulator) -> dict[str, str]:
 
 def open_recorder(sim: Simulator, path: str | os.PathLike, **options):
     """An MCAP recorder for ``sim`` holding the scene metadata and the vibration in force."""
-    from feeder_sim.recording import McapRecorder
+    from feeder_sim.output.recording import McapRecorder
     recorder = McapRecorder(path, metadata=recording_metadata(sim), **options)
     for i in sim.world.driven:
         d = sim.world.drives[i]

@@ -15,12 +15,12 @@ import os
 
 import numpy as np
 
-from feeder_sim.dynamics import SolverStats
-from feeder_sim.event_driven import EventDriven
-from feeder_sim.impulse_based import ImpulseBased
-from feeder_sim.scene import load_scene, Scene
-from feeder_sim.time_stepping import StepContacts, TimeStepper
-from feeder_sim.world import State, World
+from feeder_sim.contact.dynamics import SolverStats
+from feeder_sim.model.scene import load_scene, Scene
+from feeder_sim.model.world import State, World
+from feeder_sim.stepping.event_driven.stepper import EventDriven
+from feeder_sim.stepping.impulse_based import ImpulseBased
+from feeder_sim.stepping.time_stepping import StepContacts, TimeStepper
 
 METHODS = ('event_driven', 'time_stepping', 'impulse_based')
 

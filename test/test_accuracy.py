@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from feeder_sim import accuracy
-from feeder_sim.accuracy import CASES, check, run_accuracy
+from feeder_sim.reports import accuracy
+from feeder_sim.reports.accuracy import CASES, check, run_accuracy
 
 ANALYTIC = ('incline_slide', 'incline_stick', 'housner', 'free_flight')
 

@@ -1,4 +1,4 @@
-"""Tests for feeder_sim.collision (vertex–edge contact detection)."""
+"""Tests for feeder_sim.contact.collision (vertex–edge contact detection)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 import numpy as np
 import pytest
 
-from feeder_sim.collision import (
+from feeder_sim.contact.collision import (
     body_bounds,
     candidate_pairs,
     Contacts,

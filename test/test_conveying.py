@@ -10,9 +10,9 @@ import math
 
 import pytest
 
-from feeder_sim.builders import build, conveyor
-from feeder_sim.pointmass import Conveyor
-from feeder_sim.pointmass import mean_speed as point_mass_speed
+from feeder_sim.model.builders import build, conveyor
+from feeder_sim.reports.pointmass import Conveyor
+from feeder_sim.reports.pointmass import mean_speed as point_mass_speed
 from feeder_sim.simulator import Simulator
 
 G = 9.81
@@ -55,10 +55,10 @@ GRID = list(itertools.product((20, 30), (0.5, 0.8), (0, 3), (0.5, 0.8, 1.0, 1.2,
 
 @pytest.mark.parametrize('psi, mu, theta, gamma', GRID)
 def test_event_driven_matches_the_analytic_point_mass(psi, mu, theta, gamma):
-    # The same 48 configurations as the reference table, against feeder_sim.pointmass (closed-
-    # form phases, exactly located events) over the same cycles from the same start: stick,
-    # slide, hop and land all agree to 2e-6 (measured worst 1.1e-6, in a sliding Gamma = 1.5
-    # case whose last digits depend on how precisely a grazing lift-off is located).
+    # The same 48 configurations as the reference table, against feeder_sim.reports.pointmass
+    # (closed-form phases, exactly located events) over the same cycles from the same start: stick,
+    # slide, hop and land all agree to 2e-6 (measured worst 1.1e-6, in a sliding Gamma = 1.5 case
+    # whose last digits depend on how precisely a grazing lift-off is located).
     V, sim = mean_speed(psi, mu, theta, gamma)
     c = Conveyor(psi=math.radians(psi), theta=math.radians(theta), mu_s=mu, mu_k=mu,
                  gamma=gamma)

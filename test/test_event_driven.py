@@ -13,11 +13,11 @@ import math
 import numpy as np
 import pytest
 
-from feeder_sim import _ed_kernels as kern
-from feeder_sim import lcp
-from feeder_sim.builders import box, build, conveyor, scene_dict
-from feeder_sim.event_driven import EventSettings
+from feeder_sim.contact import lcp
+from feeder_sim.model.builders import box, build, conveyor, scene_dict
 from feeder_sim.simulator import Simulator
+from feeder_sim.stepping.event_driven import _kernels as kern
+from feeder_sim.stepping.event_driven.stepper import EventSettings
 
 HALF_M = 0.005        # half side of the 10 mm blocks
 MASS_KG = 0.01

@@ -1,4 +1,4 @@
-"""Tests of feeder_sim.geometry against closed-form answers.
+"""Tests of feeder_sim.model.geometry against closed-form answers.
 
 Tolerances: 1e-12 relative for areas, centroids (relative to the part size), second moments and
 masses; 1e-15 absolute for rotation matrices.
@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 import numpy as np
 import pytest
 
-from feeder_sim.geometry import (
+from feeder_sim.model.geometry import (
     convex_decomposition,
     convex_overlap,
     drop_collinear,

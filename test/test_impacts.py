@@ -4,7 +4,7 @@
 import numpy as np
 import pytest
 
-from feeder_sim.builders import box, build
+from feeder_sim.model.builders import box, build
 from feeder_sim.simulator import Simulator
 
 G = 9.81

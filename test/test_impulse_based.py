@@ -11,13 +11,13 @@ import time
 import numpy as np
 import pytest
 
-from feeder_sim.builders import build, conveyor
-from feeder_sim.dynamics import SolverStats
-from feeder_sim.impulse_based import collide, ImpulseBased, ImpulseSettings
-from feeder_sim.pointmass import Conveyor, mean_speed
-from feeder_sim.scene import load_scene
+from feeder_sim.contact.dynamics import SolverStats
+from feeder_sim.model.builders import build, conveyor
+from feeder_sim.model.scene import load_scene
+from feeder_sim.model.world import World
+from feeder_sim.reports.pointmass import Conveyor, mean_speed
 from feeder_sim.simulator import Simulator
-from feeder_sim.world import World
+from feeder_sim.stepping.impulse_based import collide, ImpulseBased, ImpulseSettings
 
 G = 9.81
 

@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from feeder_sim.lcp import FrictionalLCP, LCPResult, residual, solve
+from feeder_sim.contact.lcp import FrictionalLCP, LCPResult, residual, solve
 
 ALL = ('dantzig', 'lemke', 'pgs', 'frictionless')
 

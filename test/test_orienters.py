@@ -13,9 +13,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from feeder_sim.collision import find_contacts
+from feeder_sim.contact.collision import find_contacts
+from feeder_sim.model.scene import load_scene
 from feeder_sim.run import run
-from feeder_sim.scene import load_scene
 from feeder_sim.simulator import Simulator
 
 DURATION_S = 4.5      # the sixth cup leaves at about 4.1 s with the good hook

@@ -7,9 +7,9 @@ from mcap.reader import make_reader
 import numpy as np
 import pytest
 
-from feeder_sim.outcomes import OutcomeTracker
+from feeder_sim.model.scene import load_scene, OutcomeSpec
+from feeder_sim.output.outcomes import OutcomeTracker
 from feeder_sim.run import run
-from feeder_sim.scene import load_scene, OutcomeSpec
 from feeder_sim.simulator import Simulator
 
 
@@ -45,7 +45,7 @@ def test_exit_orientation_is_named_after_the_nearest_one_within_the_tolerance():
 
 
 def test_outcome_settings_are_checked_and_written_back():
-    from feeder_sim.scene import parse_scene, scene_to_dict, SceneError
+    from feeder_sim.model.scene import parse_scene, scene_to_dict, SceneError
     base = scene_to_dict(load_scene('track_one_box'))
     base['outcomes'] = {'exit_position': 0.05, 'exit_axis': [0.0, -2.0],
                         'orientations': {'flat': 0.0, 'on_edge': 1.5708}}

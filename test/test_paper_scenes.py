@@ -5,8 +5,8 @@ import math
 
 import pytest
 
-from feeder_sim.pointmass import Conveyor, mean_speed
-from feeder_sim.scene import load_scene
+from feeder_sim.model.scene import load_scene
+from feeder_sim.reports.pointmass import Conveyor, mean_speed
 from feeder_sim.simulator import Simulator
 
 
@@ -70,7 +70,7 @@ def test_paper_command_writes_figures_and_the_numbers_behind_them(tmp_path):
 @pytest.mark.parametrize('scene', ['bowl_track_0deg', 'bowl_track_3deg'])
 def test_impulse_based_feeds_at_the_event_driven_speed(scene):
     # Fig. 8: the two methods agree on the steady feeding speed (issue target 5 %).
-    from feeder_sim.paper import steady_speed
+    from feeder_sim.reports.paper import steady_speed
 
     lcp = steady_speed(scene, method='event_driven')
     impulses = steady_speed(scene, method='impulse_based')

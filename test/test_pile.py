@@ -14,11 +14,11 @@ import math
 import numpy as np
 import pytest
 
-from feeder_sim import _kernels as K
-from feeder_sim.builders import build, conveyor
-from feeder_sim.collision import evaluate_gaps
+from feeder_sim.contact import _kernels as K
+from feeder_sim.contact.collision import evaluate_gaps
+from feeder_sim.model.builders import build, conveyor
 from feeder_sim.simulator import _ImpulseLog, ContactReport, Simulator
-import feeder_sim.time_stepping as TS
+import feeder_sim.stepping.time_stepping as TS
 
 
 def pile(n_parts, seed=1, materials=False, friction_impulse=True):
@@ -298,7 +298,7 @@ def test_a_deep_wedge_in_a_pile_is_not_thrown_apart():
     """Piles push penetration out through the velocities; the push is capped, so a contact
     left 0.4 mm deep (as an unconverged PGS can leave a jammed queue) does not turn into a
     0.8 m/s kick (push_out * depth * 2 / h at h = 0.2 ms)."""
-    from feeder_sim.scene import parse_scene
+    from feeder_sim.model.scene import parse_scene
     box = [[-0.01, -0.005], [0.01, -0.005], [0.01, 0.005], [-0.01, 0.005]]
     mat = {'mu_static': 0.5, 'mu_dynamic': 0.5, 'restitution': 0.0}
     bodies = [{'name': 'floor', 'type': 'static', 'polygon': [[-1, -0.1], [1, -0.1], [1, 0],
@@ -329,7 +329,7 @@ def test_projection_of_a_wedged_cup_stays_within_its_overlap():
 
     import yaml
 
-    from feeder_sim.scene import parse_scene
+    from feeder_sim.model.scene import parse_scene
 
     here = pathlib.Path(__file__).parent / 'data'
     sim = Simulator(parse_scene(yaml.safe_load((here / 'wedged_cups.yaml').read_text())))
@@ -388,7 +388,7 @@ MAGAZINE_CUPS = {   # name: (x, y, angle, vx, vy, omega)
 
 
 def _deepest_overlap_between(sim, names):
-    from feeder_sim.collision import find_contacts
+    from feeder_sim.contact.collision import find_contacts
     w, st = sim.world, sim.state
     c = find_contacts(w.shapes, st.position, st.angle, w.dynamic, margin=0.0, depth=3e-3)
     idx = [w.names.index(n) for n in names]

@@ -1,12 +1,18 @@
-"""The point-mass conveying reference (feeder_sim.pointmass) against physics reference §4."""
+"""The point-mass conveying reference (reports.pointmass) against physics reference §4."""
 
 import math
 
 import numpy as np
 import pytest
 
-import feeder_sim.pointmass as pointmass
-from feeder_sim.pointmass import Conveyor, dimensionless_speed, mean_speed, thresholds, trajectory
+import feeder_sim.reports.pointmass as pointmass
+from feeder_sim.reports.pointmass import (
+    Conveyor,
+    dimensionless_speed,
+    mean_speed,
+    thresholds,
+    trajectory,
+)
 
 GAMMAS = (0.5, 0.8, 1.0, 1.2, 1.5, 2.0)
 # Reference section 4.3: (psi deg, mu, theta deg) -> V_m at GAMMAS (mu_s = mu_k = mu)

@@ -17,8 +17,8 @@ from mcap_ros2.reader import read_ros2_messages
 import numpy as np
 import pytest
 
-from feeder_sim import msgdefs
-from feeder_sim.recording import (
+from feeder_sim.output import msgdefs
+from feeder_sim.output.recording import (
     CONTACT_POINT_DTYPE,
     McapRecorder,
     read_messages,
@@ -504,7 +504,7 @@ def run_child(code, *args, **kwargs):
 CHILD_PRELUDE = """
 import sys, time
 import numpy as np
-from feeder_sim.recording import McapRecorder, RecordingError
+from feeder_sim.output.recording import McapRecorder, RecordingError
 
 def frame(rec, i):
     t = i * 10_000_000

@@ -15,13 +15,18 @@ import pytest
 import rerun as rr
 from rerun.chunk import RrdReader
 
-from feeder_sim import msgdefs
-from feeder_sim import replay as replay_module
 from feeder_sim.cli import main
-from feeder_sim.recording import CONTACT_POINT_DTYPE, McapRecorder, read_messages, TOPIC_PART_POSES
-from feeder_sim.replay import replay
+from feeder_sim.model.scene import load_scene, scene_to_dict
+from feeder_sim.output import msgdefs
+from feeder_sim.output import replay as replay_module
+from feeder_sim.output.recording import (
+    CONTACT_POINT_DTYPE,
+    McapRecorder,
+    read_messages,
+    TOPIC_PART_POSES,
+)
+from feeder_sim.output.replay import replay
 from feeder_sim.run import run
-from feeder_sim.scene import load_scene, scene_to_dict
 from feeder_sim.simulator import Simulator
 
 POSES = '/feeder_sim/part_poses'

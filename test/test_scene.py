@@ -1,4 +1,4 @@
-"""Tests of feeder_sim.scene: parsing, defaults, decomposition, and one test per kind of bad input.
+"""Tests of feeder_sim.model.scene: parsing, defaults, decomposition, one test per bad input.
 
 Numbers read from YAML are compared exactly (the parser must not change them); derived mass
 properties to 1e-12 relative.
@@ -15,8 +15,8 @@ import pytest
 import yaml
 
 import feeder_sim
-from feeder_sim import geometry
-from feeder_sim.scene import (
+from feeder_sim.model import geometry
+from feeder_sim.model.scene import (
     BodySpec,
     load_scene,
     parse_scene,

@@ -33,11 +33,11 @@ from std_srvs.srv import SetBool, Trigger
 from visualization_msgs.msg import MarkerArray
 import yaml
 
-from feeder_sim.pointmass import Conveyor, mean_speed
-from feeder_sim.recording import read_messages
-from feeder_sim.ros_messages import PART_IMPULSE_FIELDS
-from feeder_sim.scene import load_scene, scene_to_dict
-from feeder_sim.sim_node import SimNode
+from feeder_sim.model.scene import load_scene, scene_to_dict
+from feeder_sim.output.recording import read_messages
+from feeder_sim.reports.pointmass import Conveyor, mean_speed
+from feeder_sim.ros.messages import PART_IMPULSE_FIELDS
+from feeder_sim.ros.node import SimNode
 from feeder_sim.simulator import Simulator
 
 pytestmark = pytest.mark.timeout(180)

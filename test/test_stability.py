@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from feeder_sim import stability as S
+from feeder_sim.reports import stability as S
 
 TS, ED, IB = 'time_stepping', 'event_driven', 'impulse_based'
 BOTH = (TS, ED)

@@ -4,9 +4,9 @@ their mass ratio, and a fast part does not pass through a thin wall."""
 import numpy as np
 import pytest
 
-from feeder_sim.builders import box, build, scene_dict
+from feeder_sim.model.builders import box, build, scene_dict
 from feeder_sim.simulator import Simulator
-import feeder_sim.time_stepping as TS
+import feeder_sim.stepping.time_stepping as TS
 
 G = 9.81
 

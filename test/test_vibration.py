@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from feeder_sim.vibration import Drive
+from feeder_sim.model.vibration import Drive
 
 
 def test_motion_is_the_given_sinusoid():

@@ -8,7 +8,7 @@ accuracy setting:
 * ``event_driven``: the integrator's relative ``tolerance`` (its largest step stays the
   scene's: 1/16 of the vibration period, or 10 ms where nothing vibrates);
 * ``impulse_based``: the collision envelope ``ImpulseSettings.envelope_m`` (its step does not
-  enter the accuracy, see :mod:`feeder_sim.impulse_based`);
+  enter the accuracy, see :mod:`feeder_sim.stepping.impulse_based`);
 * ``pymunk`` (when importable): the step, with 20 solver iterations, a collision slop of
   1 um and the default overlap bias; friction of a pair is the product of the two shapes'
   frictions there, so the track gets 1 and the part mu; restitution 0; a kinematic track moved
@@ -37,11 +37,11 @@ import time
 
 import numpy as np
 
-from feeder_sim.builders import box_part, build, conveyor, G, ground, on_slope, scene_dict
-from feeder_sim.event_driven import EventSettings
-from feeder_sim.impulse_based import ImpulseSettings
-from feeder_sim.pointmass import Conveyor, mean_speed
+from feeder_sim.model.builders import box_part, build, conveyor, G, ground, on_slope, scene_dict
+from feeder_sim.reports.pointmass import Conveyor, mean_speed
 from feeder_sim.simulator import Simulator
+from feeder_sim.stepping.event_driven.stepper import EventSettings
+from feeder_sim.stepping.impulse_based import ImpulseSettings
 
 ERROR_FLOOR = 1e-16
 PART = (0.02, 0.01)            # box width x height, m (the conveying tables' part)

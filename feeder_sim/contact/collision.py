@@ -88,7 +88,7 @@ import math
 
 import numpy as np
 
-from feeder_sim._kernels import clean_contacts, narrow_phase
+from feeder_sim.contact._kernels import clean_contacts, narrow_phase
 
 __all__ = [
     "ANGLE_TOL",

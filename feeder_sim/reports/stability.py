@@ -39,10 +39,10 @@ from typing import Any
 
 import numpy as np
 
-from feeder_sim.builders import box, box_part, G, ground, on_slope, scene_dict
-from feeder_sim.impulse_based import ImpulseSettings
-from feeder_sim.scene import parse_scene
+from feeder_sim.model.builders import box, box_part, G, ground, on_slope, scene_dict
+from feeder_sim.model.scene import parse_scene
 from feeder_sim.simulator import Simulator
+from feeder_sim.stepping.impulse_based import ImpulseSettings
 
 __all__ = ['Criterion', 'SceneRun', 'StabilityCase', 'SCENES', 'METHODS', 'run_case',
            'run_stability', 'write_table_png']
@@ -977,7 +977,7 @@ _DRIVE_HZ = 500.0
 
 
 def _drive_runs(method: str, p: Mapping[str, Any]) -> list[SceneRun]:
-    from feeder_sim.builders import conveyor
+    from feeder_sim.model.builders import conveyor
     # time stepping at 0.55 of a drive period (incommensurate, so the steps do not sample one
     # phase); the event-driven and impulse-based largest step is capped at 1/16 period anyway
     step = _steps(0.55 / _DRIVE_HZ, 1e-2, 0.55 / _DRIVE_HZ)[method]

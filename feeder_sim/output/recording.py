@@ -1,7 +1,7 @@
 """MCAP recording of feeder_sim runs with ROS 2 message encoding, without ROS.
 
 Logs use the ``ros2`` MCAP profile: channel message encoding ``cdr``, schema encoding
-``ros2msg`` with the full message definition (see :mod:`feeder_sim.msgdefs`), so that
+``ros2msg`` with the full message definition (see :mod:`feeder_sim.output.msgdefs`), so that
 ``ros2 bag``, Foxglove, mcap-ros2-support and rerun read them.  The payloads are serialized
 here (XCDR1, little endian, encapsulation header ``00 01 00 00``) for the few message types
 the simulator publishes; nothing from rclpy or the ROS message packages is imported.
@@ -34,7 +34,7 @@ from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, Writer
 import numpy as np
 
-from . import msgdefs
+from feeder_sim.output import msgdefs
 
 try:
     import zstandard  # noqa: F401

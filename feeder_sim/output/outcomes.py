@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from feeder_sim.scene import OutcomeSpec
+from feeder_sim.model.scene import OutcomeSpec
 
 OTHER = 'other'   # an exit orientation farther than the tolerance from every named one
 

@@ -29,8 +29,8 @@ import time
 
 import numpy as np
 
-from feeder_sim.pointmass import Conveyor, mean_speed
-from feeder_sim.scene import load_scene, Scene
+from feeder_sim.model.scene import load_scene, Scene
+from feeder_sim.reports.pointmass import Conveyor, mean_speed
 from feeder_sim.simulator import Simulator
 
 log = logging.getLogger('feeder_sim')

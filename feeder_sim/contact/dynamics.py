@@ -15,10 +15,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from feeder_sim._kernels import island_groups
-from feeder_sim.collision import Contacts
-from feeder_sim.lcp import FrictionalLCP
-from feeder_sim.world import cross2, mix, perp, State, World
+from feeder_sim.contact._kernels import island_groups
+from feeder_sim.contact.collision import Contacts
+from feeder_sim.contact.lcp import FrictionalLCP
+from feeder_sim.model.world import cross2, mix, perp, State, World
 
 # friction treatment of one contact row in an LCP
 NONE, BOX, SLAVED = 0, 1, 2

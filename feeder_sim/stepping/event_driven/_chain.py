@@ -5,7 +5,7 @@ friction gives way, a contact lifts off, the part lands again. Each is resolved 
 contacts alone: the held ones, and at a landing the corners that reached a face. :func:`follow`
 runs the whole sequence (collision impulses, force LCP, mode, closed-form phase, its first
 event, ...) without returning to Python for each event, which is where
-:mod:`feeder_sim.event_driven` spends most of its time on such a part.
+:mod:`feeder_sim.stepping.event_driven.stepper` spends most of its time on such a part.
 
 It stops and leaves the event to ``EventDriven``'s general path wherever that path could see
 more than it does: a held corner at the end of its edge or near another edge of its piece, a
@@ -28,7 +28,7 @@ import math
 import numba
 import numpy as np
 
-from feeder_sim import _ed_kernels as kern
+from feeder_sim.stepping.event_driven import _kernels as kern
 
 _JIT = {'cache': True, 'nogil': True, 'error_model': 'numpy'}
 

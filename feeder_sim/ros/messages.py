@@ -2,8 +2,8 @@
 
 Everything here is stamped with simulated time (integer nanoseconds) and drawn in the plane
 z = 0 of frame ``world``. The contact cloud has the same fields and layout as the one the MCAP
-recorder writes (:data:`feeder_sim.recording.CONTACT_FIELDS`), so a subscriber and a log reader
-decode them the same way.
+recorder writes (:data:`feeder_sim.output.recording.CONTACT_FIELDS`), so a subscriber and a log
+reader decode them the same way.
 """
 
 from __future__ import annotations
@@ -20,9 +20,9 @@ from sensor_msgs.msg import JointState, PointCloud2, PointField
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-from feeder_sim.impulses import PartImpulses
-from feeder_sim.recording import CONTACT_FIELDS, CONTACT_POINT_STEP
-from feeder_sim.world import perp
+from feeder_sim.model.world import perp
+from feeder_sim.output.impulses import PartImpulses
+from feeder_sim.output.recording import CONTACT_FIELDS, CONTACT_POINT_STEP
 
 _NS = 1_000_000_000
 

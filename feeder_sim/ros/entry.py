@@ -19,7 +19,7 @@ def main() -> int:
         signal.signal(sig, request_stop)
     if stop.is_set():
         return 0
-    from feeder_sim import sim_node
+    from feeder_sim.ros import node as sim_node
     return sim_node.main(stop=stop)
 
 

@@ -54,14 +54,14 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import SetBool, Trigger
 from visualization_msgs.msg import MarkerArray
 
-from feeder_sim import ros_messages as msgs
-from feeder_sim.impulses import part_impulses
-from feeder_sim.recording import RecordingError
+from feeder_sim.model.scene import SceneError
+from feeder_sim.model.vibration import CommandLimits, parse_command
+from feeder_sim.model.world import DYNAMIC
+from feeder_sim.output.impulses import part_impulses
+from feeder_sim.output.recording import RecordingError
+from feeder_sim.ros import messages as msgs
 from feeder_sim.run import Frame, open_recorder, record_frame
-from feeder_sim.scene import SceneError
 from feeder_sim.simulator import METHODS, Simulator
-from feeder_sim.vibration import CommandLimits, parse_command
-from feeder_sim.world import DYNAMIC
 
 NODE_NAME = 'feeder_sim'
 _NS = 1_000_000_000
@@ -472,7 +472,7 @@ def main(args: list[str] | None = None, stop: threading.Event | None = None) -> 
     SIGINT and SIGTERM only set ``stop``, which the loop reads between callbacks: an exception
     thrown into the middle of a frame (a kernel being compiled, a chunk being written) would
     leave a traceback instead of a clean exit with a finalized log. ``stop`` is given by the
-    console entry point (:mod:`feeder_sim.node_entry`), which sets the handlers up before
+    console entry point (:mod:`feeder_sim.ros.entry`), which sets the handlers up before
     anything heavy is imported.
     """
     previous = {}

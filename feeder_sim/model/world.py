@@ -1,9 +1,9 @@
 """The simulated world: bodies as arrays (struct of arrays) and the state that evolves.
 
-A :class:`World` is built once from a :class:`~feeder_sim.scene.Scene` and does not change while
-the simulation runs (except the vibration drives, which take commands). A :class:`State` holds
-what the stepping methods change: time, centre-of-mass positions, angles and velocities of every
-body. Static and kinematic bodies have rows in the state too; their rows are written from the
+A :class:`World` is built once from a :class:`~feeder_sim.model.scene.Scene` and does not change
+while the simulation runs (except the vibration drives, which take commands). A :class:`State`
+holds what the stepping methods change: time, centre-of-mass positions, angles and velocities of
+every body. Static and kinematic bodies have rows in the state too; their rows are written from the
 prescribed motion, never integrated.
 
 Poses in the state are those of each body's centre of mass; scene files and published poses use
@@ -18,10 +18,10 @@ import math
 
 import numpy as np
 
-from feeder_sim.collision import ShapeSet
-from feeder_sim.geometry import mass_properties
-from feeder_sim.scene import Scene
-from feeder_sim.vibration import Drive
+from feeder_sim.contact.collision import ShapeSet
+from feeder_sim.model.geometry import mass_properties
+from feeder_sim.model.scene import Scene
+from feeder_sim.model.vibration import Drive
 
 STATIC, KINEMATIC, DYNAMIC = 0, 1, 2
 BODY_TYPES = {'static': STATIC, 'kinematic': KINEMATIC, 'dynamic': DYNAMIC}

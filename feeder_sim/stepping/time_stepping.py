@@ -76,11 +76,11 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from feeder_sim import _kernels as K
-from feeder_sim import lcp
-from feeder_sim._kernels import island_groups
-from feeder_sim.collision import Contacts, DEPTH_FRACTION, evaluate_gaps, find_contacts
-from feeder_sim.dynamics import (
+from feeder_sim.contact import _kernels as K
+from feeder_sim.contact import lcp
+from feeder_sim.contact._kernels import island_groups
+from feeder_sim.contact.collision import Contacts, DEPTH_FRACTION, evaluate_gaps, find_contacts
+from feeder_sim.contact.dynamics import (
     assemble,
     BOX,
     contact_set,
@@ -90,8 +90,8 @@ from feeder_sim.dynamics import (
     NONE,
     SolverStats,
 )
-from feeder_sim.scene import SolverSpec
-from feeder_sim.world import State, World
+from feeder_sim.model.scene import SolverSpec
+from feeder_sim.model.world import State, World
 
 
 @dataclass

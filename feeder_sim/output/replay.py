@@ -33,11 +33,11 @@ log time) and nothing on the wall-clock ``log_time`` / ``log_tick`` timelines:
 The recording also carries the property ``replay`` (log name, scene, method, arrow scale) and a
 blueprint: the 2D view above three time-series views, time panel on ``sim_time``.
 
-Logs are read with :func:`feeder_sim.recording.read_messages`, so logs of a killed writer (no
-footer) convert up to their last complete chunk. Topics other than the feeder_sim ones are
-ignored. Conversion time (2-core machine): a 10-part, 100 Hz, 10 s log (4 000 messages) about
-0.2 s, plus about 1 s of imports from the command line; a synthetic 50-part, 100 Hz, 60 s log
-(24 000 messages, 15 MB) about 1.7 s.
+Logs are read with :func:`feeder_sim.output.recording.read_messages`, so logs of a killed writer
+(no footer) convert up to their last complete chunk. Topics other than the feeder_sim ones are
+ignored. Conversion time (2-core machine): a 10-part, 100 Hz, 10 s log (4 000 messages) about 0.2
+s, plus about 1 s of imports from the command line; a synthetic 50-part, 100 Hz, 60 s log (24 000
+messages, 15 MB) about 1.7 s.
 """
 
 from __future__ import annotations
@@ -67,8 +67,9 @@ import pyarrow as pa
 import rerun as rr
 import rerun.blueprint as rrb
 
-from feeder_sim import msgdefs
-from feeder_sim.recording import (
+from feeder_sim.model.scene import parse_scene, Scene
+from feeder_sim.output import msgdefs
+from feeder_sim.output.recording import (
     CONTACT_FIELDS,
     CONTACT_POINT_DTYPE,
     read_messages,
@@ -78,7 +79,6 @@ from feeder_sim.recording import (
     TOPIC_VIBRATION_CMD,
     TOPICS,
 )
-from feeder_sim.scene import parse_scene, Scene
 
 __all__ = ['APPLICATION_ID', 'TIMELINE', 'impulse_scale', 'part_size', 'replay']
 

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from feeder_sim import geometry
+from feeder_sim.model import geometry
 
 __all__ = [
     'BODY_TYPES', 'METHODS', 'BodySpec', 'Scene', 'SceneError', 'SolverSpec', 'Vibration',
@@ -722,7 +722,7 @@ def scene_dirs() -> list[Path]:
     candidates.append(Path(sys.prefix) / 'share' / 'feeder_sim' / 'config')
     candidates += [Path(p) / 'share' / 'feeder_sim' / 'config'
                    for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
-    candidates.append(Path(__file__).resolve().parents[1] / 'config')
+    candidates.append(Path(__file__).resolve().parents[2] / 'config')
     found: list[Path] = []
     for d in candidates:
         if d.is_dir() and d.resolve() not in {f.resolve() for f in found}:

@@ -6,7 +6,7 @@ summed per dynamic body: the linear impulse (N s, world frame), the angular impu
 body's centre of mass (N m s) and the sum of the normal impulse magnitudes, which is the
 quantity wear and damage scale with.
 
-Sign convention (as in :mod:`feeder_sim.dynamics`): a contact's normal points from the edge
+Sign convention (as in :mod:`feeder_sim.contact.dynamics`): a contact's normal points from the edge
 body ``b`` towards the vertex body ``a`` and its tangent is the normal turned by +90 degrees;
 ``a`` receives ``normal_impulse * n + tangent_impulse * t`` and ``b`` the opposite.
 """
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from feeder_sim.world import perp
+from feeder_sim.model.world import perp
 
 
 @dataclass

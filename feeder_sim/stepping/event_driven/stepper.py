@@ -34,11 +34,11 @@ Phases are followed in one of two ways:
   functions) and the steps are compiled; while a drive blends after a command it is not a
   plain sinusoid, and a Python right-hand side that asks the drives takes over.
 
-The kernels are in :mod:`feeder_sim._ed_kernels`. A single dynamic body's closed-form phases
-are chained in compiled code (:mod:`feeder_sim._ed_chain`) through the events its own contacts
-resolve (a slip stopping or reversing, static friction giving way, a lift-off, a corner landing
-on a face): Python then sees only the rest (a corner leaving its edge, touching near a corner,
-an LCP the pivoting misses, a mode without closed form).
+The kernels are in :mod:`._kernels`. A single dynamic body's closed-form phases are chained in
+compiled code (:mod:`._chain`) through the events its own contacts resolve (a slip stopping or
+reversing, static friction giving way, a lift-off, a corner landing on a face): Python then sees
+only the rest (a corner leaving its edge, touching near a corner, an LCP the pivoting misses, a
+mode without closed form).
 
 Candidate collisions are the active corners of every piece against every other piece whose
 bounding box lay within a margin when they were detected; they are detected again only when a
@@ -69,11 +69,9 @@ import math
 
 import numpy as np
 
-from feeder_sim import _ed_chain as chain
-from feeder_sim import _ed_kernels as kern
-from feeder_sim import lcp
-from feeder_sim.collision import Contacts, evaluate_gaps, find_contacts
-from feeder_sim.dynamics import (
+from feeder_sim.contact import lcp
+from feeder_sim.contact.collision import Contacts, evaluate_gaps, find_contacts
+from feeder_sim.contact.dynamics import (
     BOX,
     contact_set,
     ContactSet,
@@ -83,9 +81,11 @@ from feeder_sim.dynamics import (
     SLAVED,
     SolverStats,
 )
-from feeder_sim.scene import SolverSpec
-from feeder_sim.time_stepping import dantzig_message, friction_rows, StepContacts
-from feeder_sim.world import mix, perp, rot, State, World
+from feeder_sim.model.scene import SolverSpec
+from feeder_sim.model.world import mix, perp, rot, State, World
+from feeder_sim.stepping.event_driven import _chain as chain
+from feeder_sim.stepping.event_driven import _kernels as kern
+from feeder_sim.stepping.time_stepping import dantzig_message, friction_rows, StepContacts
 
 STICK, SLIDE = kern.STICK, kern.SLIDE
 assert (BOX, SLAVED) == (kern.BOX_ROW, kern.SLAVED_ROW)
@@ -130,8 +130,8 @@ class EventSettings:
     cascade_window_s: float = 1e-6   # events closer than this in time count as one cascade
     max_give_way_s: float = 1e-5     # longest step taken past a persisting cascade
     # One dynamic body: follow its closed-form phases through the events its own contacts
-    # resolve in compiled code (:mod:`feeder_sim._ed_chain`); False takes each event through
-    # the general path (the same answers to round-off, several times slower).
+    # resolve in compiled code (:mod:`._chain`); False takes each event through the general
+    # path (the same answers to round-off, several times slower).
     chained: bool = True
 
 
@@ -171,7 +171,7 @@ class _Candidates:
 
 @dataclass
 class _Phase:
-    """Kernel arrays of a closed-form phase (see :mod:`feeder_sim._ed_kernels`)."""
+    """Kernel arrays of a closed-form phase (see :mod:`._kernels`)."""
 
     kind: np.ndarray          # (n,) FIXED / DRIVEN / MOVING
     index: np.ndarray         # (n,) drive of a DRIVEN body
@@ -216,7 +216,7 @@ def _with_geometry(world: World, features: Contacts, state: State) -> ContactSet
 
 def _relative_velocity(cs: ContactSet, state: State) -> tuple[np.ndarray, np.ndarray]:
     """Normal and tangential relative velocity of every contact, as
-    :func:`feeder_sim.dynamics.relative_velocity` gives them."""
+    :func:`feeder_sim.contact.dynamics.relative_velocity` gives them."""
     c = cs.contacts
     return kern.relative_velocity(c.normal, cs.r_a, cs.r_b, c.body_a, c.body_b, state.velocity,
                                   state.omega)
@@ -530,7 +530,7 @@ class EventDriven:
     def _guarded_step(self, state: State, k0: np.ndarray, h: float, g0: np.ndarray,
                       offset: np.ndarray) -> float:
         """``h`` shortened so that no corner can pass through a piece within the step
-        (:func:`feeder_sim._ed_kernels.guarded_step`)."""
+        (:func:`feeder_sim.stepping.event_driven._kernels.guarded_step`)."""
         mode = self._mode
         cand = mode.candidates
         if not cand.n:
@@ -668,7 +668,7 @@ class EventDriven:
 
     def _follow_chain(self, state: State, t_stop: float) -> bool:
         """``_follow_closed_form`` for a single dynamic body, carried on through the events its
-        own contacts resolve (:mod:`feeder_sim._ed_chain`)."""
+        own contacts resolve (:mod:`feeder_sim.stepping.event_driven._chain`)."""
         mode, ph = self._mode, self._mode.phase
         if self._near is None:
             self._near = self._find_candidates(state, self._closed_form_margin())
@@ -1103,8 +1103,8 @@ class EventDriven:
     def _solve_lcp(self, kind: str, W: np.ndarray, b_full: np.ndarray, friction: np.ndarray,
                    mu_lo: np.ndarray, mu_hi: np.ndarray,
                    slave: np.ndarray | None = None) -> tuple[np.ndarray, bool, str]:
-        """A contact LCP posed as for :func:`feeder_sim.dynamics.assemble`: stacked solution
-        (2k,), converged, message.
+        """A contact LCP posed as for :func:`feeder_sim.contact.dynamics.assemble`: stacked
+        solution (2k,), converged, message.
 
         The rows' final states (active set) of the last pivoting solve of each problem shape
         are tried first and kept when the LCP residual accepts them: events of a periodic

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 
-from feeder_sim.scene import parse_scene, Scene
+from feeder_sim.model.scene import parse_scene, Scene
 
 G = 9.81
 

@@ -1,4 +1,4 @@
-"""Numba kernels of the event-driven method (:mod:`feeder_sim.event_driven`).
+"""Numba kernels of the event-driven method (:mod:`feeder_sim.stepping.event_driven.stepper`).
 
 * Closed-form phases (``advance``): bodies are FIXED (static or undriven, pose constant),
   DRIVEN (pose from a sinusoidal drive ``d(t) = A sin(phase + w (t - t_ref))`` along ``u``) or
@@ -11,7 +11,8 @@
   Candidate arrays: vertex body, local coordinates, piece body, first and end edge, the
   corner's two edge vectors (local, ``(c, 2, 2)``) and the piece's minimum width (m).
 * Small contact systems: Jacobian and Delassus matrix, the boxed LCP of
-  :func:`feeder_sim.dynamics.assemble`, an LCP solved on a given active set and its residual,
+  :func:`feeder_sim.contact.dynamics.assemble`, an LCP solved on a given active set and its
+  residual,
   the force LCP's right-hand side and the mode it implies.
 * Integrated phases: the held mode's right-hand side, event functions and forces
   (``mode_rhs``) and Dormand–Prince 5(4) steps (``dopri_step``).
@@ -27,14 +28,14 @@ import math
 import numba
 import numpy as np
 
-from feeder_sim._kernels import dantzig as _dantzig
+from feeder_sim.contact._kernels import dantzig as _dantzig
 
 _JIT = {'cache': True, 'nogil': True, 'error_model': 'numpy'}
 
 FIXED, DRIVEN, MOVING = 0, 1, 2
 DONE, EVENT, REFRESH = 0, 1, 2
 NO_FRICTION, STICK, SLIDE = 0, 1, 2
-BOX_ROW, SLAVED_ROW = 1, 2    # friction treatment of a contact LCP row (feeder_sim.dynamics)
+BOX_ROW, SLAVED_ROW = 1, 2    # contact LCP row's friction (contact.dynamics)
 # A corner within FLUSH_M (m) of an edge line whose edges leave it at most FLUSH_ANGLE (rad)
 # outwards of that line lies flush on it (``_flush``). FLUSH_M is ten times the depth at which
 # a collision event fires (1e-12 m), so a corner that drifts by round-off stays flush.
@@ -532,7 +533,7 @@ def contact_jacobian(normal, r_a, r_b, body_a, body_b, dynamic, inv_mass, inv_in
 
 @numba.njit(**_JIT)
 def lcp_residual(A, b, x, normal_of, lo, hi):
-    """The frictional LCP residual of :func:`feeder_sim.lcp.residual` (same formula)."""
+    """The frictional LCP residual of :func:`feeder_sim.contact.lcp.residual` (same formula)."""
     m = b.shape[0]
     if m == 0:
         return 0.0
@@ -621,7 +622,7 @@ def lcp_with_pattern(A, b, normal_of, lo, hi, pattern):
 
 @numba.njit(**_JIT)
 def reduce_lcp(W, friction, mu_lo, mu_hi, slave):
-    """The boxed LCP of :func:`feeder_sim.dynamics.assemble` from the full 2k problem:
+    """The boxed LCP of :func:`feeder_sim.contact.dynamics.assemble` from the full 2k problem:
     ``(A, P, rows, normal_of, lo, hi)`` with ``b = b_full[rows]`` and the stacked solution
     ``P @ x``. Friction NONE drops the row, BOX keeps it, SLAVED ties it to its normal."""
     c = friction.shape[0]
@@ -667,7 +668,7 @@ def lcp_known_pattern(W, b_full, friction, mu_lo, mu_hi, slave, pattern):
 @numba.njit(**_JIT)
 def lcp_dantzig(W, b_full, friction, mu_lo, mu_hi, slave):
     """Solve the contact LCP from scratch by the compiled Baraff-Dantzig pivoting
-    (:func:`feeder_sim._kernels.dantzig`, a port of ``lcp.solve``'s first method):
+    (:func:`feeder_sim.contact._kernels.dantzig`, a port of ``lcp.solve``'s first method):
     ``(stacked solution, x, w, residual, pivots, abort codes)`` with the reduced problem
     ``(A, b, normal_of, lo, hi)`` for the caller's fallback when the residual misses."""
     A, P, rows, normal_of, lo, hi = reduce_lcp(W, friction, mu_lo, mu_hi, slave)
@@ -856,7 +857,7 @@ def mode_rows(f, a_rel, fr, mu_s, sigma, force_tol, acc_tol):
 @numba.njit(**_JIT)
 def relative_velocity(normal, r_a, r_b, body_a, body_b, vel, omega):
     """Normal and tangential velocity of each contact's vertex relative to the edge's
-    material point under it (as :func:`feeder_sim.dynamics.relative_velocity`)."""
+    material point under it (as :func:`feeder_sim.contact.dynamics.relative_velocity`)."""
     k = normal.shape[0]
     v_n = np.empty(k)
     v_t = np.empty(k)

@@ -106,12 +106,12 @@ import math
 import numba
 import numpy as np
 
-from feeder_sim._ed_kernels import world_point
-from feeder_sim.collision import Contacts
-from feeder_sim.dynamics import contact_set, SolverStats
-from feeder_sim.scene import SolverSpec
-from feeder_sim.time_stepping import StepContacts
-from feeder_sim.world import mix, State, World
+from feeder_sim.contact.collision import Contacts
+from feeder_sim.contact.dynamics import contact_set, SolverStats
+from feeder_sim.model.scene import SolverSpec
+from feeder_sim.model.world import mix, State, World
+from feeder_sim.stepping.event_driven._kernels import world_point
+from feeder_sim.stepping.time_stepping import StepContacts
 
 __all__ = ['CollisionResult', 'ImpulseBased', 'ImpulseSettings', 'collide', 'LAWS']
 
