@@ -23,15 +23,12 @@ multiply the compile time (the Dantzig port is three functions for that reason).
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
-_JIT = {'cache': True, 'nogil': True, 'error_model': 'numpy'}
-# helpers only called from other kernels need no Python wrapper (less to compile)
-_INNER = dict(_JIT, no_cpython_wrapper=True)
+from feeder_sim._jit import inner, jit
 
 
-@numba.njit(**_INNER)
+@inner
 def _finite(a):
     """All entries finite (a loop: numpy's reductions are slow to compile)."""
     for v in a.flat:
@@ -40,7 +37,7 @@ def _finite(a):
     return True
 
 
-@numba.njit(**_INNER)
+@inner
 def _argsort(keys):
     """Stable argsort (bottom-up merge sort). Hand-written because ``np.argsort`` with a
     ``kind`` compiles numba's generic sorts and string handling: seconds of compile time."""
@@ -78,7 +75,7 @@ def _argsort(keys):
     return idx
 
 
-@numba.njit(**_INNER)
+@inner
 def _where(mask):
     n = 0
     for v in mask:
@@ -92,7 +89,7 @@ def _where(mask):
     return out
 
 
-@numba.njit(**_INNER)
+@inner
 def _find(parent: np.ndarray, i: int) -> int:
     while parent[i] != i:
         parent[i] = parent[parent[i]]
@@ -100,7 +97,7 @@ def _find(parent: np.ndarray, i: int) -> int:
     return i
 
 
-@numba.njit(**_JIT)
+@jit
 def island_groups(n_bodies, dynamic, a, b):
     """Islands of dynamic bodies joined by contacts (static / kinematic bodies never join).
 
@@ -169,7 +166,7 @@ def island_groups(n_bodies, dynamic, a, b):
     return order, starts, bodies, body_starts
 
 
-@numba.njit(**_INNER)
+@inner
 def _rows(a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia):
     """Per-row Jacobian blocks of contacts: rows [N_0..N_{c-1}, T_0..T_{c-1}].
 
@@ -202,7 +199,7 @@ def _rows(a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia):
     return ja, jb, ma, mb
 
 
-@numba.njit(**_JIT)
+@jit
 def apply_impulses(dv, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, p_n, p_t):
     """``dv[body] += M^-1 J^T p`` for contact impulses (p_n, p_t); dv is (n_bodies, 3).
 
@@ -229,14 +226,14 @@ def apply_impulses(dv, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, p
         dv[i, 2] += inv_inertia[i] * s[i, 2]
 
 
-@numba.njit(**_INNER)
+@inner
 def _row_w(i, k, a, b, ja, jb, dv, bias):
     ia, ib = a[k], b[k]
     return (bias + ja[i, 0] * dv[ia, 0] + ja[i, 1] * dv[ia, 1] + ja[i, 2] * dv[ia, 2]
             + jb[i, 0] * dv[ib, 0] + jb[i, 1] * dv[ib, 1] + jb[i, 2] * dv[ib, 2])
 
 
-@numba.njit(**_INNER)
+@inner
 def _row_add(i, k, a, b, ma, mb, dv, delta):
     ia, ib = a[k], b[k]
     dv[ia, 0] += ma[i, 0] * delta
@@ -247,7 +244,7 @@ def _row_add(i, k, a, b, ma, mb, dv, delta):
     dv[ib, 2] += mb[i, 2] * delta
 
 
-@numba.njit(**_INNER)
+@inner
 def _island_residual(lo_c, hi_c, a, b, ja, jb, dv, b_n, b_t, box, mu_lo, mu_hi, x_n, x_t,
                      diag, c, w_t_out):
     """Two measures of how far one island's impulses are from solving its LCP.
@@ -299,7 +296,7 @@ def _island_residual(lo_c, hi_c, a, b, ja, jb, dv, b_n, b_t, box, mu_lo, mu_hi, 
     return max(r, 0.0), rv
 
 
-@numba.njit(**_JIT)
+@jit
 def contact_velocities(a, b, normal, r_a, r_b, velocity, omega):
     """Normal and tangential relative velocity of every contact (``dynamics.relative_velocity``
     with the same operation order, so the same bits)."""
@@ -319,7 +316,7 @@ def contact_velocities(a, b, normal, r_a, r_b, velocity, omega):
     return v_n, v_t
 
 
-@numba.njit(**_JIT)
+@jit
 def drift(idx, position, angle, velocity, omega, half_h, out_position, out_angle):
     """``out = position + half_h * velocity`` (and the same for the angles) for the bodies
     ``idx``: a half step of Moreau's midpoint scheme, with the bits of numpy's
@@ -331,7 +328,7 @@ def drift(idx, position, angle, velocity, omega, half_h, out_position, out_angle
         out_angle[i] = angle[i] + half_h * omega[i]
 
 
-@numba.njit(**_JIT)
+@jit
 def speed_bounds(velocity, omega, radius, dynamic):
     """The largest ``|v| + |omega| r`` (speed bound of a body's points) of the dynamic bodies
     and of the others, the largest ``omega^2 r`` of the dynamic bodies, and a bound on the
@@ -364,7 +361,7 @@ def speed_bounds(velocity, omega, radius, dynamic):
     return v_dyn, v_other, spin, 2.0 * spread
 
 
-@numba.njit(**_JIT)
+@jit
 def contact_rows(a, b, point, normal, gap, order, starts, position, v_end, w_end, v_pre, w_pre,
                  mu_s_body, mu_d_body, e_body, h, touch, max_rows, push_out, push_max, slop,
                  collide_speed, slip_tol, friction_impulse, piece_a, piece_b, piece_width,
@@ -498,7 +495,7 @@ def contact_rows(a, b, point, normal, gap, order, starts, position, v_end, w_end
             mu_lo, mu_hi, gap_min)
 
 
-@numba.njit(**_JIT)
+@jit
 def feature_gaps(idx, vertex, edge, vertices, normals, vertex_body, position, cos, sin):
     """Gaps of the vertex-edge features of contacts ``idx`` at another configuration:
     ``collision.evaluate_gaps`` (its gap) with the same arithmetic, so the same bits; ``cos`` /
@@ -526,7 +523,7 @@ def feature_gaps(idx, vertex, edge, vertices, normals, vertex_body, position, co
 # island solvers: Dantzig for small islands, projected Gauss-Seidel for large ones
 
 
-@numba.njit(**_INNER)
+@inner
 def _affine(A, x, b):
     """``A @ x + b`` (a loop: cheaper to compile than the BLAS binding, as fast at this size)."""
     m, n = A.shape
@@ -539,7 +536,7 @@ def _affine(A, x, b):
     return out
 
 
-@numba.njit(**_INNER)
+@inner
 def _dense_residual(A, b, x, w, nof, lo, hi):
     """``lcp.residual`` of ``w = A x + b`` (w given)."""
     m = b.shape[0]
@@ -578,7 +575,7 @@ _R_BN, _R_BT, _R_SN, _R_ST, _R_DN, _R_DT, _R_LO, _R_HI = range(24, 32)
 _R_WIDTH = 32
 
 
-@numba.njit(**_INNER)
+@inner
 def _pgs_records(a, b, ja, jb, ma, mb, step, diag, b_n, b_t, mu_lo, mu_hi, inv_mass,
                  inv_inertia):
     """Everything a sweep reads about contact k in row k of one (c, 32) array, so that a sweep
@@ -612,7 +609,7 @@ def _pgs_records(a, b, ja, jb, ma, mb, step, diag, b_n, b_t, mu_lo, mu_hi, inv_m
     return R, fixed_a, fixed_b
 
 
-@numba.njit(inline='always', **_INNER)
+@inner(inline='always')
 def _push(dv, R, k, ia, ib, col, d):
     """Add the velocity change of an impulse change ``d`` on row ``k`` to both its bodies
     (``R[k, col:col + 6]`` hold M^-1 J^T for body a, then body b)."""
@@ -624,7 +621,7 @@ def _push(dv, R, k, ia, ib, col, d):
     dv[ib, 2] += R[k, col + 5] * d
 
 
-@numba.njit(**_INNER)
+@inner
 def _pgs_island(lo_c, hi_c, a, b, R, fixed_a, fixed_b, dv, box, x_n, x_t, sweeps):
     """``sweeps`` projected Gauss-Seidel sweeps over contacts lo_c..hi_c-1 in order, each
     normal followed by its friction row, whose bounds use the normal just updated (velocity
@@ -684,7 +681,7 @@ def _pgs_island(lo_c, hi_c, a, b, R, fixed_a, fixed_b, dv, box, x_n, x_t, sweeps
     return change
 
 
-@numba.njit(**_INNER)
+@inner
 def _island_dense(lo_c, hi_c, c, a, b, ja, jb, ma, mb, b_n, b_t, box, mu_lo, mu_hi):
     """The assembled problem of contacts lo_c..hi_c-1 (``dynamics.assemble``'s layout: the
     normals, then the friction rows of contacts with ``box``): A, b, normal_of, mu_lo, mu_hi,
@@ -735,7 +732,7 @@ def _island_dense(lo_c, hi_c, c, a, b, ja, jb, ma, mb, b_n, b_t, box, mu_lo, mu_
     return A, bb, nof, lo, hi, rc, rf
 
 
-@numba.njit(**_JIT)
+@jit
 def solve_small(select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, b_n,
                 b_t, box, mu_lo, mu_hi, x_n, x_t, w_t):
     """The islands with ``select`` (contacts grouped by ``starts``, CSR) by Baraff-Dantzig
@@ -775,7 +772,7 @@ def solve_small(select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_i
     return res, work, codes
 
 
-@numba.njit(**_JIT)
+@jit
 def solve_pgs(select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, b_n, b_t,
               box, mu_lo, mu_hi, x_n, x_t, w_t, dv, tol, max_sweeps, check, omega):
     """The islands with ``select`` by projected Gauss-Seidel in velocity form
@@ -839,7 +836,7 @@ def solve_pgs(select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_ine
 # collision detection: broad and narrow phase of ``collision.find_contacts``
 
 
-@numba.njit(**_INNER)
+@inner
 def _vertex_edge(pv_lo, pv_hi, qe_lo, qe_hi, w, nw, active, internal, nxt, prv, elen, margin,
                  depth, tie, param_tol, angle_tol, out_v, out_e, out_g, out_t, n_out):
     """Vertices pv_lo..pv_hi-1 of one piece against edges qe_lo..qe_hi-1 of another: the
@@ -888,7 +885,7 @@ def _vertex_edge(pv_lo, pv_hi, qe_lo, qe_hi, w, nw, active, internal, nxt, prv, 
     return n_out
 
 
-@numba.njit(**_JIT)
+@jit
 def narrow_phase(w, nw, lo, hi, piece_start, piece_body, take, dyn, bp_margin, margin,
                  depth, piece_width, depth_fraction, coord, radius, tie_rel, active, internal,
                  nxt, prv, elen, param_tol, angle_tol):
@@ -979,7 +976,7 @@ _EPS_RATE = 1e-11
 _OK, _PIVOT_CAP, _NO_STEP, _NONFINITE, _BAD_END, _CYCLING, _BUDGET, _NUMERIC = range(8)
 
 
-@numba.njit(**_INNER)
+@inner
 def _dz_solve(M, r, amax, cnt):
     """``lcp._Dantzig._solve``: closed forms for n <= 2, else LU with partial pivoting; a
     (nearly) singular system (counted in cnt[1]) gets the basic solution of complete
@@ -1095,7 +1092,7 @@ def _dz_solve(M, r, amax, cnt):
     return y
 
 
-@numba.njit(**_INNER)
+@inner
 def _dz_direction(A, b, st, nof, lo, hi, d, sigma, amax, cnt):
     """``lcp._Dantzig._direction`` (d >= 0): the unit move (dx, dw) of x_d by sigma keeping
     clamped rows' w fixed, slaved friction columns substituted into their normals' (the
@@ -1163,7 +1160,7 @@ def _dz_direction(A, b, st, nof, lo, hi, d, sigma, amax, cnt):
     return dx, dw
 
 
-@numba.njit(**_INNER)
+@inner
 def dantzig(A, b, nof, lo, hi, max_pivots):
     """``lcp._dantzig``: a Baraff-Dantzig pass from x = 0 and, with friction, when it
     aborts, one retry treating every normal before any friction row. Returns (x, pivots,
@@ -1512,7 +1509,7 @@ def dantzig(A, b, nof, lo, hi, max_pivots):
     return best_x, total, codes[0], codes[1]
 
 
-@numba.njit(**_JIT)
+@jit
 def clean_contacts(vert, edge, gap, t, cover_start, cover_lo, cover_hi, nxt, canon, vbody,
                    nw, n_vertices, n_bodies, param_tol, angle_tol):
     """The clean-up of ``collision.find_contacts`` after the narrow phase, same results:

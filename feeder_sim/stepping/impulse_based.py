@@ -103,9 +103,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 import math
 
-import numba
 import numpy as np
 
+from feeder_sim._jit import jit
 from feeder_sim.contact.collision import Contacts
 from feeder_sim.contact.dynamics import contact_set, SolverStats
 from feeder_sim.model.scene import SolverSpec
@@ -115,7 +115,6 @@ from feeder_sim.stepping.time_stepping import StepContacts
 
 __all__ = ['CollisionResult', 'ImpulseBased', 'ImpulseSettings', 'collide', 'LAWS']
 
-_JIT = {'cache': True, 'nogil': True, 'error_model': 'numpy'}
 
 LAWS = {'stronge': 0, 'poisson': 1, 'newton': 2}
 _STRONGE, _POISSON, _NEWTON = 0, 1, 2
@@ -185,7 +184,7 @@ class CollisionResult:
 
 
 # ------------------------------------------------------------------------ single collision
-@numba.njit(**_JIT)
+@jit
 def _rise(un, dun, target):
     """Normal impulse along a ray until u_N reaches ``target`` (0 if already there)."""
     if un >= target:
@@ -195,7 +194,7 @@ def _rise(un, dun, target):
     return math.inf
 
 
-@numba.njit(**_JIT)
+@jit
 def _termination(law, e, un0, pn, un, w, pc, wc, dun, v_sep):
     """Normal impulse from the current point of a ray to the end of the collision."""
     if law == _NEWTON:
@@ -214,7 +213,7 @@ def _termination(law, e, un0, pn, un, w, pc, wc, dun, v_sep):
     return max(d_law, _rise(un, dun, v_sep))
 
 
-@numba.njit(**_JIT)
+@jit
 def _collide(ktt, ktn, knn, ut0, un0, mu_d, mu_s, e, law, v_sep):
     """Closed-form 2D Routh/Mirtich collision; returns (p_T, p_N, u_T, u_N, phase bits, p_N,c).
 
@@ -333,7 +332,7 @@ def collide(K: np.ndarray, u0: np.ndarray, mu: float, e: float, law: str = 'stro
 
 
 # ------------------------------------------------------------------------ kernel geometry
-@numba.njit(**_JIT)
+@jit
 def _drive_motion(t, row):
     """Displacement, velocity and acceleration of a drive at t (as vibration.Drive.motion)."""
     tau = t - row[_D_START]
@@ -352,7 +351,7 @@ def _drive_motion(t, row):
     return d, v, a
 
 
-@numba.njit(**_JIT)
+@jit
 def _poses(t1, h, kind, drive_row, drives, gravity, pos, ang, vel, om, pos1, ang1, vel1, om1):
     """Free flight from t1 - h to t1: ballistic dynamic bodies, driven bodies on their drives."""
     for i in range(kind.shape[0]):
@@ -377,7 +376,7 @@ def _poses(t1, h, kind, drive_row, drives, gravity, pos, ang, vel, om, pos1, ang
             ang1[i], om1[i] = ang[i], om[i]
 
 
-@numba.njit(**_JIT)
+@jit
 def _piece_gap(px, py, pos, ang, body, start, end, verts, normals, internal):
     """Largest signed distance of a point from a piece's outer edge lines, and that edge."""
     c, s = math.cos(ang[body]), math.sin(ang[body])
@@ -395,13 +394,13 @@ def _piece_gap(px, py, pos, ang, body, start, end, verts, normals, internal):
     return best, face
 
 
-@numba.njit(**_JIT)
+@jit
 def _face_frame(ang, body, normals, face):
     c, s = math.cos(ang[body]), math.sin(ang[body])
     return c * normals[face, 0] - s * normals[face, 1], s * normals[face, 0] + c * normals[face, 1]
 
 
-@numba.njit(**_JIT)
+@jit
 def _relative(vel, om, a, b, rax, ray, rbx, rby, nx, ny):
     """(u_T, u_N) of a's corner against b's material point, tangent = normal rotated +90."""
     relx = (vel[a, 0] - om[a] * ray) - (vel[b, 0] - om[b] * rby)
@@ -409,7 +408,7 @@ def _relative(vel, om, a, b, rax, ray, rbx, rby, nx, ny):
     return -ny * relx + nx * rely, nx * relx + ny * rely
 
 
-@numba.njit(**_JIT)
+@jit
 def _gap_rate(pos, ang, vel, om, a, b, px, py, nx, ny):
     _, un = _relative(vel, om, a, b, px - pos[a, 0], py - pos[a, 1], px - pos[b, 0],
                       py - pos[b, 1], nx, ny)
@@ -417,7 +416,7 @@ def _gap_rate(pos, ang, vel, om, a, b, px, py, nx, ny):
 
 
 # ------------------------------------------------------------------------ kernel: collisions
-@numba.njit(**_JIT)
+@jit
 def _resolve(t, pos, ang, vel, om, inv_mass, inv_inertia, cv_body, cv_local, cp_body, cp_start,
              cp_end, c_mu_s, c_mu_d, c_e, verts, normals, internal, eps, v_sep, micro_speed,
              friction_on, law, max_sweeps, acc_n, acc_t, acc_geo, counters, fout):
@@ -513,7 +512,7 @@ def _resolve(t, pos, ang, vel, om, inv_mass, inv_inertia, cv_body, cv_local, cp_
 
 
 # ------------------------------------------------------------------------ kernel: stepping
-@numba.njit(**_JIT)
+@jit
 def _toi(g0, u0, gh, h, center, floor):
     """Time in (0, h] at which a gap, quadratic in time through g0 (rate u0) and gh at h,
     comes down to the middle of the contact band (or half way to its floor)."""
@@ -540,7 +539,7 @@ def _toi(g0, u0, gh, h, center, floor):
     return best
 
 
-@numba.njit(**_JIT)
+@jit
 def _reach_step(h, speed, g, reach, h_min):
     """Largest step <= h over which speed * h + g h^2 / 2 stays within reach."""
     if speed * h + 0.5 * g * h * h <= reach:
@@ -548,7 +547,7 @@ def _reach_step(h, speed, g, reach, h_min):
     return max(h_min, 2.0 * reach / (speed + math.sqrt(speed * speed + 2.0 * g * reach)))
 
 
-@numba.njit(**_JIT)
+@jit
 def _run(t, t_stop, pos, ang, vel, om, kind, drive_row, drives, drive_speed, gravity,
          inv_mass, inv_inertia, radius, cv_body, cv_local, cp_body, cp_start, cp_end, c_mu_s,
          c_mu_d, c_e, verts, normals, internal, anchor_pos, anchor_ang, margin, width, h_max,

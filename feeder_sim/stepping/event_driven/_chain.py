@@ -25,12 +25,10 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 
+from feeder_sim._jit import jit
 from feeder_sim.stepping.event_driven import _kernels as kern
-
-_JIT = {'cache': True, 'nogil': True, 'error_model': 'numpy'}
 
 DONE, EVENT, REFRESH = kern.DONE, kern.EVENT, kern.REFRESH
 # Statistics ``follow`` returns, by index.
@@ -38,14 +36,14 @@ DONE, EVENT, REFRESH = kern.DONE, kern.EVENT, kern.REFRESH
  ENERGY_FIXES, N_STATS) = range(10)
 
 
-@numba.njit(**_JIT)
+@jit
 def _take(c, idx):
     """The contacts ``idx`` of ``c``."""
     return (c[0][idx], c[1][idx], c[2][idx], c[3][idx], c[4][idx], c[5][idx], c[6][idx],
             c[7][idx], c[8][idx], c[9][idx], c[10][idx], c[11][idx])
 
 
-@numba.njit(**_JIT)
+@jit
 def _join(c, d):
     """The contacts of ``c`` followed by those of ``d``."""
     return (np.concatenate((c[0], d[0])), np.concatenate((c[1], d[1])),
@@ -56,13 +54,13 @@ def _join(c, d):
             np.concatenate((c[10], d[10])), np.concatenate((c[11], d[11])))
 
 
-@numba.njit(**_JIT)
+@jit
 def _geometry(pos, ang, c):
     """World point, normal, gap and edge parameter of the contacts ``c``."""
     return kern.held_geometry(pos, ang, c[3], c[4], c[5], c[6], c[7], c[8])
 
 
-@numba.njit(**_JIT)
+@jit
 def _arms(pos, c, point):
     """Contact points relative to the vertex body's and the edge body's origin."""
     k = point.shape[0]
@@ -75,7 +73,7 @@ def _arms(pos, c, point):
     return r_a, r_b
 
 
-@numba.njit(**_JIT)
+@jit
 def _free_acceleration(t, kind, index, drives, gravity, acc):
     """Every body's acceleration without contact forces: gravity on the dynamic ones, the
     drive's on driven ones, none on the others."""
@@ -91,14 +89,14 @@ def _free_acceleration(t, kind, index, drives, gravity, acc):
             acc[i, 0] = acc[i, 1] = 0.0
 
 
-@numba.njit(**_JIT)
+@jit
 def _segment_distance(px, py, q0x, q0y, q1x, q1y):
     ex, ey = q1x - q0x, q1y - q0y
     s = max(0.0, min(1.0, ((px - q0x) * ex + (py - q0y) * ey) / (ex * ex + ey * ey)))
     return math.hypot(px - q0x - s * ex, py - q0y - s * ey)
 
 
-@numba.njit(**_JIT)
+@jit
 def _edge_ends_fired(g, offset, first, end):
     """True if an edge-parameter event function (``g[first:end]``) is below its level."""
     for j in range(first, end):
@@ -107,7 +105,7 @@ def _edge_ends_fired(g, offset, first, end):
     return False
 
 
-@numba.njit(**_JIT)
+@jit
 def _touching(pos, ang, held, cands, world, geometry, materials, near_m, touch_m):
     """The contacts contact detection would find at (pos, ang) besides the held ones:
     ``(ok, new contacts)``, not ok where the general path must find them.
@@ -184,7 +182,7 @@ def _touching(pos, ang, held, cands, world, geometry, materials, near_m, touch_m
                   new_mu_d, new_e)
 
 
-@numba.njit(**_JIT)
+@jit
 def _record(c, point, normal, p, rec, rows):
     """Stacked contact impulses ``p`` of the contacts ``c`` into ``rec`` from row ``rows``."""
     rec_vertex, rec_edge, rec_a, rec_b, rec_point, rec_normal, rec_pn, rec_pt = rec
@@ -198,7 +196,7 @@ def _record(c, point, normal, p, rec, rows):
     return rows + k
 
 
-@numba.njit(**_JIT)
+@jit
 def _count(stats, x, res, pivots):
     """An LCP solved by pivoting into the statistics (``SolverStats.record``)."""
     stats[N_LCPS] += 1
@@ -208,7 +206,7 @@ def _count(stats, x, res, pivots):
     stats[PIVOTS] += pivots
 
 
-@numba.njit(**_JIT)
+@jit
 def _impacts(c, pos, ang, vel, om, world, tols, stats, rec, rows):
     """Collision impulses until no contact approaches (``EventDriven._impact``): velocities
     change in place and each impulse is recorded; ``(ok, rows)``."""
@@ -266,7 +264,7 @@ def _impacts(c, pos, ang, vel, om, world, tols, stats, rec, rows):
     return True, rows
 
 
-@numba.njit(**_JIT)
+@jit
 def _mode_at_event(t, c, pos, ang, vel, om, model, world, tols, acc, stats):
     """The next mode over the contacts ``c`` (``EventDriven._choose_mode``):
     ``(ok, contacts kept, friction, sigma, normal, r_a, r_b)``; not ok where the general
@@ -319,7 +317,7 @@ def _mode_at_event(t, c, pos, ang, vel, om, model, world, tols, acc, stats):
             r_b[kept])
 
 
-@numba.njit(**_JIT)
+@jit
 def _closed_form(c, friction, sigma, normal, r_a, r_b, om, model, world, tols):
     """The phase of the mode (``EventDriven._closed_form``): ``(ok, phi0, phi1, f0, f1)``."""
     kind, index, free_phi0, drives = model
@@ -344,7 +342,7 @@ def _closed_form(c, friction, sigma, normal, r_a, r_b, om, model, world, tols):
     return True, phi0, phi1, np.ascontiguousarray(f[:, 0]), np.ascontiguousarray(f[:, 1:])
 
 
-@numba.njit(**_JIT)
+@jit
 def _candidates(near, c):
     """The candidates of a mode (vertex, piece, kernel arrays): those of ``near`` but the
     held corners on their pieces."""
@@ -354,7 +352,7 @@ def _candidates(near, c):
                                            a[4][keep], a[5][keep], a[6][keep]))
 
 
-@numba.njit(**_JIT)
+@jit
 def follow(t0, t_stop, h, state, model, world, held, mode, near, geometry, materials, scales,
            tols, record):
     """Follow the held closed-form mode from t0 to t_stop through the events one body's own

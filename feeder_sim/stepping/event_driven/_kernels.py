@@ -25,12 +25,10 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 
+from feeder_sim._jit import jit
 from feeder_sim.contact._kernels import dantzig as _dantzig
-
-_JIT = {'cache': True, 'nogil': True, 'error_model': 'numpy'}
 
 FIXED, DRIVEN, MOVING = 0, 1, 2
 DONE, EVENT, REFRESH = 0, 1, 2
@@ -43,14 +41,14 @@ FLUSH_M = 1e-11
 FLUSH_ANGLE = 1e-9
 
 
-@numba.njit(**_JIT)
+@jit
 def world_point(pos, ang, body, local):
     c, s = math.cos(ang[body]), math.sin(ang[body])
     return (pos[body, 0] + c * local[0] - s * local[1],
             pos[body, 1] + s * local[0] + c * local[1])
 
 
-@numba.njit(**_JIT)
+@jit
 def _poses(t, t0, kind, index, pos0, ang0, vel0, om0, phi0, phi1, dr_u, dr_base, dr_amp,
            dr_w, dr_phase, t_ref, pos, ang, vel, om, acc_drive, dvel_drive):
     """Poses and velocities of every body at t; drive accelerations and velocity changes."""
@@ -92,7 +90,7 @@ def _poses(t, t0, kind, index, pos0, ang0, vel0, om0, phi0, phi1, dr_u, dr_base,
             om[i] = om0[i]
 
 
-@numba.njit(**_JIT)
+@jit
 def edge_line_distance(px, py, pos, c, s, pbody, j, verts, normals):
     """Signed distance (m) of the world point (px, py) from the line of edge ``j`` of body
     ``pbody`` (turned by cos c, sin s), and the edge's world normal."""
@@ -103,7 +101,7 @@ def edge_line_distance(px, py, pos, c, s, pbody, j, verts, normals):
     return nx * (px - qx) + ny * (py - qy), nx, ny
 
 
-@numba.njit(**_JIT)
+@jit
 def _vertex_piece_gap(pos, ang, vbody, local, pbody, start, end, verts, normals):
     """Largest signed distance (m) of a corner from a convex piece's edge lines."""
     px, py = world_point(pos, ang, vbody, local)
@@ -116,7 +114,7 @@ def _vertex_piece_gap(pos, ang, vbody, local, pbody, start, end, verts, normals)
     return best
 
 
-@numba.njit(**_JIT)
+@jit
 def _gap_off_flush(pos, ang, vbody, local, wedge, pbody, start, end, verts, normals, best):
     """Collision gap (m) of a corner whose largest distance ``best`` from a convex piece's
     edge lines is within FLUSH_M of 0: the largest distance from the lines it does not lie
@@ -136,7 +134,7 @@ def _gap_off_flush(pos, ang, vbody, local, wedge, pbody, start, end, verts, norm
     return inner if inner > -np.inf else best
 
 
-@numba.njit(**_JIT)
+@jit
 def _flush(c, s, wedge, nx, ny):
     """True if the corner's piece lies on the inner side of the edge line (normal n) through
     it: both edges leaving the corner run along the line or into the other piece.
@@ -153,7 +151,7 @@ def _flush(c, s, wedge, nx, ny):
     return True
 
 
-@numba.njit(**_JIT)
+@jit
 def candidate_gaps(pos, ang, cv_body, cv_local, cp_body, cp_start, cp_end, cv_wedge, cp_width,
                    verts, normals, out):
     """Gap (m) of every candidate vertex against its piece: > 0 outside, < 0 inside."""
@@ -162,7 +160,7 @@ def candidate_gaps(pos, ang, cv_body, cv_local, cp_body, cp_start, cp_end, cv_we
         out[i] = _candidate_gap(pos, ang, cands, i, verts, normals)
 
 
-@numba.njit(**_JIT)
+@jit
 def _candidate_gap(pos, ang, cands, i, verts, normals):
     """Collision gap (m) of candidate ``i``: the corner's largest distance from its piece's
     edge lines, leaving out those it lies flush on (``_gap_off_flush``)."""
@@ -175,7 +173,7 @@ def _candidate_gap(pos, ang, cands, i, verts, normals):
     return d
 
 
-@numba.njit(**_JIT)
+@jit
 def _geometric_events(params, cands, pos, ang, verts, normals, gap_scale, g, j):
     """The last event functions of a held mode from ``g[j]`` on: each held contact's edge
     parameter and its distance from 1 (both must stay >= 0), then each candidate's gap in
@@ -191,7 +189,7 @@ def _geometric_events(params, cands, pos, ang, verts, normals, gap_scale, g, j):
         j += 1
 
 
-@numba.njit(**_JIT)
+@jit
 def _contact_geometry(pos, ang, vel, om, a, b, vloc, q0loc, q1loc, nloc):
     """Edge parameter, tangential relative velocity, point and normal of one contact."""
     px, py = world_point(pos, ang, a, vloc)
@@ -210,7 +208,7 @@ def _contact_geometry(pos, ang, vel, om, a, b, vloc, q0loc, q1loc, nloc):
     return param, v_t, gap, px, py, nx, ny
 
 
-@numba.njit(**_JIT)
+@jit
 def _force_events(f, k, mu_s, group, n_groups, force_scale, g):
     """The first event functions of a held mode: each normal force (must stay >= 0), then each
     sticking group's friction-cone margin; returns the next free index of ``g``."""
@@ -230,7 +228,7 @@ def _force_events(f, k, mu_s, group, n_groups, force_scale, g):
     return j
 
 
-@numba.njit(**_JIT)
+@jit
 def _events(t, t0, bodies, drives, contacts, cands, verts, normals, scales, pos, ang, vel, om,
             acc_drive, dvel_drive, g):
     kind, index, pos0, ang0, vel0, om0, phi0, phi1 = bodies
@@ -260,7 +258,7 @@ def _events(t, t0, bodies, drives, contacts, cands, verts, normals, scales, pos,
     _geometric_events(params, cands, pos, ang, verts, normals, gap_scale, g, j)
 
 
-@numba.njit(**_JIT)
+@jit
 def _speed_bounds(h, bodies, drives, vel, om, speed, turn):
     """Every body's largest translational speed (m/s) and turning rate (rad/s) over the next
     h of a closed-form phase, into ``speed`` and ``turn``."""
@@ -282,7 +280,7 @@ def _speed_bounds(h, bodies, drives, vel, om, speed, turn):
             speed[i], turn[i] = v, abs(om[i])
 
 
-@numba.njit(**_JIT)
+@jit
 def _within_reach(h, kind, pos, ang, speed, turn, reach):
     """True if no body can get farther than its reach from the candidates' anchor in h."""
     anchor_pos, anchor_ang, radius, limit = reach
@@ -296,7 +294,7 @@ def _within_reach(h, kind, pos, ang, speed, turn, reach):
     return True
 
 
-@numba.njit(**_JIT)
+@jit
 def guarded_step(h, pos, ang, speed, turn, cands, g, first, offset, gap_scale):
     """The largest step <= h over which no candidate corner can travel, relative to its piece,
     farther than its gap plus half the piece's minimum width (conservative advancement).
@@ -326,7 +324,7 @@ def guarded_step(h, pos, ang, speed, turn, cands, g, first, offset, gap_scale):
     return h
 
 
-@numba.njit(**_JIT)
+@jit
 def guarded_integrator_step(h, pos, ang, vel, om, dydt, dyn, drive_acc, cands, g, first,
                             offset, gap_scale):
     """``guarded_step`` for an integrator step of h from (pos, ang, vel, om): speeds bounded
@@ -345,7 +343,7 @@ def guarded_integrator_step(h, pos, ang, vel, om, dydt, dyn, drive_acc, cands, g
     return guarded_step(h, pos, ang, speed, turn, cands, g, first, offset, gap_scale)
 
 
-@numba.njit(**_JIT)
+@jit
 def _guard_scales(pos, cands, limit):
     """Half the smallest piece width of the candidates (m) and a bound on any candidate
     corner's distance from its piece's origin (m) while no body moves farther than ``limit``
@@ -360,7 +358,7 @@ def _guard_scales(pos, cands, limit):
     return half_width, reach
 
 
-@numba.njit(**_JIT)
+@jit
 def _slow(h, speed, turn, radius, half_width, reach):
     """True if no candidate corner can move half the thinnest candidate piece's width relative
     to it within h: then ``guarded_step`` cannot shorten the step, and this costs a pass over
@@ -372,7 +370,7 @@ def _slow(h, speed, turn, radius, half_width, reach):
     return (2.0 * fastest + turning * (reach + 2.0 * h * fastest)) * h <= half_width
 
 
-@numba.njit(**_JIT)
+@jit
 def advance_watching(t0, t_end, h, threshold, bodies, drives, contacts, cands, verts,
                      normals, scales, reach, pos, ang, vel, om, dvel_drive, g_hi):
     """Step a closed-form phase from t0 towards t_end in steps of h, watching the events.
@@ -433,7 +431,7 @@ def advance_watching(t0, t_end, h, threshold, bodies, drives, contacts, cands, v
     return DONE, tp, steps, offset
 
 
-@numba.njit(**_JIT)
+@jit
 def advance(t0, t_end, h, threshold, n_events, bodies, drives, contacts, cands, verts,
             normals, scales, reach, pos, ang, vel, om, dvel_drive):
     """``advance_watching`` without the event functions: ``(status, t, steps)``."""
@@ -443,7 +441,7 @@ def advance(t0, t_end, h, threshold, n_events, bodies, drives, contacts, cands, 
     return status, t, steps
 
 
-@numba.njit(**_JIT)
+@jit
 def event_offsets(g_start, n_candidates, threshold):
     """Per event function, what is added to it before testing for a drop below zero.
 
@@ -461,7 +459,7 @@ def event_offsets(g_start, n_candidates, threshold):
     return offset
 
 
-@numba.njit(**_JIT)
+@jit
 def _locate(tp, h, g_lo, g_hi, hit, t0, offset, bodies, drives, contacts, cands, verts,
             normals, scales, pos, ang, vel, om, acc_drive, dvel_drive, n_events):
     """Earliest time past which a hit function is below its level (Illinois); ``g_lo``,
@@ -501,7 +499,7 @@ def _locate(tp, h, g_lo, g_hi, hit, t0, offset, bodies, drives, contacts, cands,
 # small contact systems
 
 
-@numba.njit(**_JIT)
+@jit
 def contact_jacobian(normal, r_a, r_b, body_a, body_b, dynamic, inv_mass, inv_inertia, bodies):
     """Contact Jacobian (rows ``N_0..N_{k-1}, T_0..T_{k-1}``, columns (vx, vy, omega) of each of
     ``bodies``), the diagonal of M^-1 and the Delassus matrix, when every contact moves exactly
@@ -531,7 +529,7 @@ def contact_jacobian(normal, r_a, r_b, body_a, body_b, dynamic, inv_mass, inv_in
     return True, J, minv, W
 
 
-@numba.njit(**_JIT)
+@jit
 def lcp_residual(A, b, x, normal_of, lo, hi):
     """The frictional LCP residual of :func:`feeder_sim.contact.lcp.residual` (same formula)."""
     m = b.shape[0]
@@ -564,7 +562,7 @@ def lcp_residual(A, b, x, normal_of, lo, hi):
 HELD, CLAMPED, AT_LO, AT_HI = 0, 1, 2, 3
 
 
-@numba.njit(**_JIT)
+@jit
 def lcp_pattern(x, normal_of, lo, hi):
     """Row states of a solution x (the active set a pivoting solver ended with)."""
     m = x.shape[0]
@@ -587,7 +585,7 @@ def lcp_pattern(x, normal_of, lo, hi):
     return out
 
 
-@numba.njit(**_JIT)
+@jit
 def lcp_with_pattern(A, b, normal_of, lo, hi, pattern):
     """The solution with the given row states: clamped rows get w = 0 (least squares)."""
     m = b.shape[0]
@@ -620,7 +618,7 @@ def lcp_with_pattern(A, b, normal_of, lo, hi, pattern):
     return S @ z
 
 
-@numba.njit(**_JIT)
+@jit
 def reduce_lcp(W, friction, mu_lo, mu_hi, slave):
     """The boxed LCP of :func:`feeder_sim.contact.dynamics.assemble` from the full 2k problem:
     ``(A, P, rows, normal_of, lo, hi)`` with ``b = b_full[rows]`` and the stacked solution
@@ -653,7 +651,7 @@ def reduce_lcp(W, friction, mu_lo, mu_hi, slave):
     return A @ P, P, rows, normal_of, lo, hi
 
 
-@numba.njit(**_JIT)
+@jit
 def lcp_known_pattern(W, b_full, friction, mu_lo, mu_hi, slave, pattern):
     """Solve the contact LCP with given row states: ``(stacked solution, x, w, residual)``."""
     A, P, rows, normal_of, lo, hi = reduce_lcp(W, friction, mu_lo, mu_hi, slave)
@@ -665,7 +663,7 @@ def lcp_known_pattern(W, b_full, friction, mu_lo, mu_hi, slave, pattern):
     return P @ x, x, A @ x + b, lcp_residual(A, b, x, normal_of, lo, hi)
 
 
-@numba.njit(**_JIT)
+@jit
 def lcp_dantzig(W, b_full, friction, mu_lo, mu_hi, slave):
     """Solve the contact LCP from scratch by the compiled Baraff-Dantzig pivoting
     (:func:`feeder_sim.contact._kernels.dantzig`, a port of ``lcp.solve``'s first method):
@@ -679,7 +677,7 @@ def lcp_dantzig(W, b_full, friction, mu_lo, mu_hi, slave):
     return P @ x, x, A @ x + b, res, pivots, (code, retry), (A, P, b, normal_of, lo, hi)
 
 
-@numba.njit(**_JIT)
+@jit
 def closed_form_mode(normal, r_a, r_b, body_a, body_b, dynamic, inv_mass, inv_inertia,
                      friction, sigma, mu_d, omega, radius, spin_limit, alpha_limit, gravity,
                      drive_of, drive_u):
@@ -743,7 +741,7 @@ def closed_form_mode(normal, r_a, r_b, body_a, body_b, dynamic, inv_mass, inv_in
     return True, bodies, dv, f
 
 
-@numba.njit(**_JIT)
+@jit
 def contact_groups(body_a, body_b, normal):
     """Group ids of contacts between the same two bodies along one line (parallel normals),
     numbered in order of each group's first contact."""
@@ -764,7 +762,7 @@ def contact_groups(body_a, body_b, normal):
     return group
 
 
-@numba.njit(**_JIT)
+@jit
 def sticking_groups(group, friction):
     """Sticking contacts' groups renumbered 0.. in ascending group id (-1 for the others),
     and how many there are."""
@@ -788,7 +786,7 @@ def sticking_groups(group, friction):
     return compact, n
 
 
-@numba.njit(**_JIT)
+@jit
 def held_mask(vertex, piece, held_vertex, held_piece):
     """Candidates (vertex against piece) that are not a held contact's vertex on an edge of
     that piece."""
@@ -804,7 +802,7 @@ def held_mask(vertex, piece, held_vertex, held_piece):
 # force LCP of the resting contacts (Baraff)
 
 
-@numba.njit(**_JIT)
+@jit
 def force_problem(normal, r_a, r_b, body_a, body_b, omega, acc, v_n, v_t, sliding, mu_s, mu_d):
     """Right-hand side of the force LCP and each contact's friction row treatment.
 
@@ -828,7 +826,7 @@ def force_problem(normal, r_a, r_b, body_a, body_b, omega, acc, v_n, v_t, slidin
     return b_full, fr
 
 
-@numba.njit(**_JIT)
+@jit
 def mode_rows(f, a_rel, fr, mu_s, sigma, force_tol, acc_tol):
     """The contact mode the force LCP solution implies: which contacts stay (they press, or
     they would accelerate into each other without a force), which stick and which slide
@@ -854,7 +852,7 @@ def mode_rows(f, a_rel, fr, mu_s, sigma, force_tol, acc_tol):
     return keep, friction, new_sigma
 
 
-@numba.njit(**_JIT)
+@jit
 def relative_velocity(normal, r_a, r_b, body_a, body_b, vel, omega):
     """Normal and tangential velocity of each contact's vertex relative to the edge's
     material point under it (as :func:`feeder_sim.contact.dynamics.relative_velocity`)."""
@@ -890,7 +888,7 @@ _DP_E = np.array([35 / 384 - 5179 / 57600, 0.0, 500 / 1113 - 7571 / 16695,
                   -1 / 40])
 
 
-@numba.njit(**_JIT)
+@jit
 def _bodies_at(t, y, dyn, kind, index, pos_fixed, ang_fixed, drives, gravity, pos, ang, vel,
                om, acc):
     """Every body's state and free acceleration at t: dynamic bodies from y, driven ones from
@@ -920,7 +918,7 @@ def _bodies_at(t, y, dyn, kind, index, pos_fixed, ang_fixed, drives, gravity, po
         acc[i, 0], acc[i, 1] = gravity[0], gravity[1]
 
 
-@numba.njit(**_JIT)
+@jit
 def _mode_rhs(t, y, spec, pos, ang, vel, om, acc, dydt, g, f):
     """Time derivative of y under the held mode, its event functions and contact forces.
 
@@ -1000,7 +998,7 @@ def _mode_rhs(t, y, spec, pos, ang, vel, om, acc, dydt, g, f):
     _geometric_events(params, cands, pos, ang, verts, normals, gap_scale, g, j)
 
 
-@numba.njit(**_JIT)
+@jit
 def mode_rhs(t, y, spec, n_events, pos, ang, vel, om):
     """``(dy/dt, event functions, stacked contact forces)`` of the held mode at (t, y);
     ``pos, ang, vel, om`` receive every body's state."""
@@ -1012,7 +1010,7 @@ def mode_rhs(t, y, spec, n_events, pos, ang, vel, om):
     return dydt, g, f
 
 
-@numba.njit(**_JIT)
+@jit
 def dopri_step(t, y, h, k0, spec, n_events, tol_scale, pos, ang, vel, om):
     """One Dormand-Prince 5(4) step of the held mode from (t, y) with derivative k0:
     ``(y_new, error norm, derivative at the end, event functions and forces at the end)``."""
@@ -1040,7 +1038,7 @@ def dopri_step(t, y, h, k0, spec, n_events, tol_scale, pos, ang, vel, om):
     return yi.copy(), err, ks[6].copy(), g, f
 
 
-@numba.njit(**_JIT)
+@jit
 def held_geometry(pos, ang, c_a, c_b, vloc, q0loc, q1loc, nloc):
     """World point, normal, gap and edge parameter of held contacts at (pos, ang)."""
     k = c_a.shape[0]
@@ -1062,7 +1060,7 @@ def held_geometry(pos, ang, c_a, c_b, vloc, q0loc, q1loc, nloc):
     return point, normal, gap, param
 
 
-@numba.njit(**_JIT)
+@jit
 def impact_rhs(v_n, v_t, restitution, rest_speed):
     """Right-hand side of the impulse LCP: ``w_N = v'_N + e v_N`` (plastic below the rest
     speed, no restitution for separating contacts), ``w_T = v'_T``."""
@@ -1075,7 +1073,7 @@ def impact_rhs(v_n, v_t, restitution, rest_speed):
     return b
 
 
-@numba.njit(**_JIT)
+@jit
 def impulse_effect(J, minv, W, p, v_n, v_t):
     """Velocity change ``(nb, 3)`` of stacked impulses p, and the kinetic energy they add
     against its scale (gain, |p| . |v|)."""
