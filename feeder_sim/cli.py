@@ -109,6 +109,8 @@ def _stability(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from feeder_sim.model.scene import METHODS
+
     parser = argparse.ArgumentParser(prog='feeder-sim', description=__doc__)
     parser.add_argument('--version', action='version', version=f'feeder_sim {__version__}')
     parser.add_argument('-q', '--quiet', action='store_true', help='no progress lines')
@@ -123,7 +125,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help='position along the track vs time (default: next to --record)')
     p.add_argument('--publish-rate', type=float, default=100.0, metavar='HZ',
                    help='frames per simulated second recorded (default 100)')
-    p.add_argument('--method', choices=('event_driven', 'time_stepping', 'impulse_based'),
+    p.add_argument('--method', choices=METHODS,
                    help="override the scene's solver.method")
     p.add_argument('--time-step', type=float, help="override the scene's solver.time_step")
     p.add_argument('--tolerance', type=float, help="override the scene's solver.tolerance")

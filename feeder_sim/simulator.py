@@ -16,13 +16,9 @@ import os
 import numpy as np
 
 from feeder_sim.contact.dynamics import SolverStats
-from feeder_sim.model.scene import load_scene, Scene
+from feeder_sim.model.scene import load_scene, METHODS, Scene
 from feeder_sim.model.world import State, World
-from feeder_sim.stepping.event_driven.stepper import EventDriven
-from feeder_sim.stepping.impulse_based import ImpulseBased
-from feeder_sim.stepping.time_stepping import StepContacts, TimeStepper
-
-METHODS = ('event_driven', 'time_stepping', 'impulse_based')
+from feeder_sim.stepping import StepContacts, STEPPERS
 
 
 @dataclass
@@ -148,10 +144,8 @@ class Simulator:
 
     def _make_stepper(self):
         spec = self.scene.solver
-        kind = {'time_stepping': TimeStepper, 'event_driven': EventDriven,
-                'impulse_based': ImpulseBased}[spec.method]
         settings = None if self._settings is None else copy.deepcopy(self._settings)
-        return kind(self.world, spec, self.stats, settings)
+        return STEPPERS[spec.method](self.world, spec, self.stats, settings)
 
     @property
     def t(self) -> float:
@@ -166,17 +160,8 @@ class Simulator:
         """Integrate to simulated time ``t_end`` (s); no-op if already there."""
         if not math.isfinite(t_end):
             raise ValueError(f't_end must be finite, got {t_end!r}')
-        if isinstance(self._stepper, TimeStepper):
-            h = self.scene.solver.time_step
-            # Round to whole steps so a publish period that is a multiple of the step costs
-            # no extra short steps.
-            while t_end - self.state.t > 1e-9 * h:
-                report = self._stepper.step(self.state, min(h, t_end - self.state.t))
-                if report is not None:
-                    self._log.add(report)
-        else:
-            for report in self._stepper.advance(self.state, t_end):
-                self._log.add(report)
+        for report in self._stepper.advance(self.state, t_end):
+            self._log.add(report)
 
     def command_vibration(self, amplitude_m: float, frequency_hz: float) -> None:
         """New amplitude (m) and frequency (Hz) for every vibrating body, from now on.
@@ -189,8 +174,7 @@ class Simulator:
         for i in self.world.driven:
             self.world.drives[i].command(self.state.t, amplitude_m, frequency_hz)
         self.world.apply_prescribed_motion(self.state)
-        if isinstance(self._stepper, (EventDriven, ImpulseBased)):
-            self._stepper.reset()
+        self._stepper.reset()
 
     def reset(self) -> None:
         """Back to the scene's initial state and vibration; statistics are kept."""

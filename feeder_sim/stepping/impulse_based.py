@@ -111,7 +111,7 @@ from feeder_sim.contact.dynamics import contact_set, SolverStats
 from feeder_sim.model.scene import SolverSpec
 from feeder_sim.model.world import mix, State, World
 from feeder_sim.stepping.event_driven._kernels import world_point
-from feeder_sim.stepping.time_stepping import StepContacts
+from feeder_sim.stepping.protocol import StepContacts
 
 __all__ = ['CollisionResult', 'ImpulseBased', 'ImpulseSettings', 'collide', 'LAWS']
 

@@ -92,15 +92,7 @@ from feeder_sim.contact.dynamics import (
 )
 from feeder_sim.model.scene import SolverSpec
 from feeder_sim.model.world import State, World
-
-
-@dataclass
-class StepContacts:
-    """Contacts of one step and the impulses (N s) they transmitted."""
-
-    cs: ContactSet
-    normal_impulse: np.ndarray
-    tangent_impulse: np.ndarray
+from feeder_sim.stepping.protocol import StepContacts
 
 
 @dataclass
@@ -322,6 +314,22 @@ class TimeStepper:
         reach = 1.5 * h * (closing + self._g * h) + 10 * self.settings.touch_m
         both = self.world.dynamic[a] & self.world.dynamic[b]
         return _take(contacts, np.flatnonzero(~far | (both & (contacts.gap <= reach))))
+
+    def advance(self, state: State, t_end: float) -> list[StepContacts]:
+        """Step ``state`` to ``t_end`` (s) by ``spec.time_step``, the last step shortened to land
+        on ``t_end``; the contacts of every step that had any."""
+        h = self.spec.time_step
+        reports = []
+        # A remainder below 1e-9 steps is round-off of a frame length that is a multiple of the
+        # step: it costs no extra short step.
+        while t_end - state.t > 1e-9 * h:
+            report = self.step(state, min(h, t_end - state.t))
+            if report is not None:
+                reports.append(report)
+        return reports
+
+    def reset(self) -> None:
+        """Nothing here depends on the prescribed motion beyond the current step."""
 
     def step(self, state: State, h: float | None = None) -> StepContacts | None:
         """Advance ``state`` in place by h (default: the scene's time step)."""

@@ -85,7 +85,8 @@ from feeder_sim.model.scene import SolverSpec
 from feeder_sim.model.world import mix, perp, rot, State, World
 from feeder_sim.stepping.event_driven import _chain as chain
 from feeder_sim.stepping.event_driven import _kernels as kern
-from feeder_sim.stepping.time_stepping import dantzig_message, friction_rows, StepContacts
+from feeder_sim.stepping.protocol import StepContacts
+from feeder_sim.stepping.time_stepping import dantzig_message, friction_rows
 
 STICK, SLIDE = kern.STICK, kern.SLIDE
 assert (BOX, SLAVED) == (kern.BOX_ROW, kern.SLAVED_ROW)
