@@ -44,9 +44,9 @@ import yaml  # noqa: E402
 
 from feeder_sim.model.builders import build, conveyor  # noqa: E402
 from feeder_sim.model.scene import scene_to_dict  # noqa: E402
+from feeder_sim.output.frames import Frame, record_frame  # noqa: E402
 from feeder_sim.output.recording import McapRecorder  # noqa: E402
 from feeder_sim.ros.node import SimNode  # noqa: E402
-from feeder_sim.run import Frame, record_frame  # noqa: E402
 from feeder_sim.simulator import Simulator  # noqa: E402
 
 SCENE = 'track_one_box'

@@ -57,10 +57,10 @@ from visualization_msgs.msg import MarkerArray
 from feeder_sim.model.scene import METHODS, SceneError
 from feeder_sim.model.vibration import CommandLimits, parse_command
 from feeder_sim.model.world import DYNAMIC
+from feeder_sim.output.frames import Frame, open_recorder, record_frame
 from feeder_sim.output.impulses import part_impulses
 from feeder_sim.output.recording import RecordingError
 from feeder_sim.ros import messages as msgs
-from feeder_sim.run import Frame, open_recorder, record_frame
 from feeder_sim.simulator import Simulator
 
 NODE_NAME = 'feeder_sim'
