@@ -380,7 +380,7 @@ def contact_rows(a, b, point, normal, gap, order, starts, position, v_end, w_end
     kept contact: ``dynamics.contact_set``'s tangent, r_a, r_b, mu_static, mu_dynamic,
     restitution; the free end-of-step velocities v_N, v_T (``v_end`` / ``w_end``); the
     pre-step slip v_T (``v_pre`` / ``w_pre``); pile, colliding, the normal rows' b, then
-    ``time_stepping.friction_rows``' BOX flag, mu_lo, mu_hi; and the smallest kept gap."""
+    ``dynamics.friction_rows``' BOX flag, mu_lo, mu_hi; and the smallest kept gap."""
     n = a.shape[0]
     size = np.empty(n, np.int64)
     for i in range(starts.shape[0] - 1):

@@ -64,6 +64,25 @@ def contact_set(world: World, state: State, contacts: Contacts) -> ContactSet:
     )
 
 
+def friction_rows(cs: ContactSet, v_t: np.ndarray, colliding: np.ndarray, friction_impulse: bool,
+                  slip_tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Friction treatment and bounds (mu_lo, mu_hi) of every contact for an impulse LCP.
+
+    Kawachi's rule: the pre-impact slip picks static (zero slip) or dynamic friction, and
+    dynamic friction is one-sided so it cannot reverse the slip.
+    """
+    k = cs.n
+    friction = np.full(k, BOX)
+    sliding = np.abs(v_t) > slip_tol
+    mu = np.where(sliding, cs.mu_dynamic, cs.mu_static)
+    friction[mu <= 0.0] = NONE
+    if not friction_impulse:
+        friction[colliding] = NONE
+    mu_lo = np.where(sliding & (v_t < 0), 0.0, mu)
+    mu_hi = np.where(sliding & (v_t > 0), 0.0, mu)
+    return friction, mu_lo, mu_hi
+
+
 def point_velocity(state: State, body: np.ndarray, r: np.ndarray) -> np.ndarray:
     return state.velocity[body] + state.omega[body][:, None] * perp(r)
 

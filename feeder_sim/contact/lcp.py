@@ -937,3 +937,17 @@ def solve(problem: FrictionalLCP, *, tol: float = 1e-9, max_pivots: int | None =
     res, x, meth = best
     return LCPResult(x, problem.A @ x + b, meth, total, len(failures), res, False,
                      '; '.join(failures))
+
+
+# why a numba Dantzig pass gave up (``_kernels`` abort codes)
+_ABORTS = ('', 'pivot cap reached', 'no admissible step', 'non-finite step',
+           'invalid end of a drive', 'cycling', 'row-selection budget exhausted',
+           'numerical failure')
+
+
+def dantzig_message(residual: float, codes) -> str:
+    """The logged reason a compiled Dantzig answer was solved again by ``lcp.solve``."""
+    msg = f'dantzig (numba): {_ABORTS[codes[0]] or f"residual {residual:.3g}"}'
+    if codes[1]:
+        msg += f'; normals-first retry: {_ABORTS[codes[1]]}'
+    return msg + '; solved again by lcp.solve'

@@ -162,6 +162,16 @@ class World:
         np.maximum.at(radius, self.shapes.piece_body, self.shapes.radius)
         return radius
 
+    @cached_property
+    def pair_materials(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(n, n) tables of mu_static, mu_dynamic and restitution of a contact between bodies
+        i and j (``mix`` of the two bodies' values)."""
+        pair = np.indices((self.n, self.n)).reshape(2, -1)
+        return tuple(
+            mix(values[pair[0]], values[pair[1]], rule).reshape(self.n, self.n)
+            for values, rule in ((self.mu_static, 'friction'), (self.mu_dynamic, 'friction'),
+                                 (self.restitution, 'restitution')))
+
     def initial_state(self) -> State:
         velocity = np.array([b.velocity for b in self.scene.bodies], float).reshape(self.n, 3)
         state = State(0.0, self.base_position.copy(), self.base_angle.copy(),

@@ -106,11 +106,11 @@ import math
 import numpy as np
 
 from feeder_sim._jit import jit
+from feeder_sim.contact.candidates import corner_piece_candidates, world_point
 from feeder_sim.contact.collision import Contacts
 from feeder_sim.contact.dynamics import contact_set, SolverStats
 from feeder_sim.model.scene import SolverSpec
-from feeder_sim.model.world import mix, State, World
-from feeder_sim.stepping.event_driven._kernels import world_point
+from feeder_sim.model.world import State, World
 from feeder_sim.stepping.protocol import StepContacts
 
 __all__ = ['CollisionResult', 'ImpulseBased', 'ImpulseSettings', 'collide', 'LAWS']
@@ -697,11 +697,7 @@ class ImpulseBased:
                          else max(0.1 * small, 100.0 * st.envelope_m))
         # thinnest piece, against tunnelling
         self._width = float(topo.piece_width.min()) if topo.piece_width.size else math.inf
-        pair = np.indices((world.n, world.n)).reshape(2, -1)
-        self._materials = tuple(
-            mix(values[pair[0]], values[pair[1]], rule).reshape(world.n, world.n)
-            for values, rule in ((world.mu_static, 'friction'), (world.mu_dynamic, 'friction'),
-                                 (world.restitution, 'restitution')))
+        self._materials = world.pair_materials
         self.counters = np.zeros(len(COUNTER_NAMES), np.int64)
         self._fout = np.zeros(3)
         self._cand: _Candidates | None = None
@@ -742,7 +738,6 @@ class ImpulseBased:
     def _find_candidates(self, state: State, stroke: np.ndarray) -> _Candidates:
         """Active corners against pieces of other bodies whose boxes are within the margin;
         a driven body's box is widened by its whole stroke (it never leaves it)."""
-        w = self.world
         vb, ps, pb = self._vertex_body, self._piece_start, self._piece_body
         if len(pb) < 2:
             none = np.zeros(0, np.int64)
@@ -750,22 +745,9 @@ class ImpulseBased:
             return _Candidates(none, none, arrays, state.position.copy(), state.angle.copy(),
                                stroke.copy())
         margin = self.margin_m
-        ang = state.angle[vb]
-        c, s = np.cos(ang), np.sin(ang)
+        cand = corner_piece_candidates(self.world, state, self._active, margin, stroke)
+        vertex, piece, wx, wy, lo, hi = cand
         v = self._verts
-        wx = state.position[vb, 0] + c * v[:, 0] - s * v[:, 1]
-        wy = state.position[vb, 1] + s * v[:, 0] + c * v[:, 1]
-        grow = stroke[pb][:, None]
-        lo = np.stack([np.minimum.reduceat(wx, ps[:-1]), np.minimum.reduceat(wy, ps[:-1])],
-                      1) - grow
-        hi = np.stack([np.maximum.reduceat(wx, ps[:-1]), np.maximum.reduceat(wy, ps[:-1])],
-                      1) + grow
-        near = np.all((lo[:, None, :] <= hi[None, :, :] + margin) &
-                      (lo[None, :, :] <= hi[:, None, :] + margin), axis=2)
-        dyn = w.dynamic[pb]
-        near &= (pb[:, None] != pb[None, :]) & (dyn[:, None] | dyn[None, :])
-        rows, cols = np.nonzero(near[self._vertex_piece[self._active]])
-        vertex, piece = self._active[rows], cols
         # the corner itself must lie within the margin of the piece's (widened) box
         px, py = wx[vertex], wy[vertex]
         reach = margin + stroke[vb[vertex]]

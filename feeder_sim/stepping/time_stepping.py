@@ -85,9 +85,9 @@ from feeder_sim.contact.dynamics import (
     BOX,
     contact_set,
     ContactSet,
+    friction_rows,
     island_jacobian,
     islands,
-    NONE,
     SolverStats,
 )
 from feeder_sim.model.scene import SolverSpec
@@ -124,25 +124,6 @@ class TimeStepSettings:
     pgs_check: int = 1             # PGS sweeps between convergence tests
     pgs_omega: float = 1.3         # over-relaxation of the large-island PGS (24 instead of
     #                                33 sweeps per solve in the 200-part pile, same result)
-
-
-def friction_rows(cs: ContactSet, v_t: np.ndarray, colliding: np.ndarray, friction_impulse: bool,
-                  slip_tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Friction treatment and bounds (mu_lo, mu_hi) of every contact for an impulse LCP.
-
-    Kawachi's rule: the pre-impact slip picks static (zero slip) or dynamic friction, and
-    dynamic friction is one-sided so it cannot reverse the slip.
-    """
-    k = cs.n
-    friction = np.full(k, BOX)
-    sliding = np.abs(v_t) > slip_tol
-    mu = np.where(sliding, cs.mu_dynamic, cs.mu_static)
-    friction[mu <= 0.0] = NONE
-    if not friction_impulse:
-        friction[colliding] = NONE
-    mu_lo = np.where(sliding & (v_t < 0), 0.0, mu)
-    mu_hi = np.where(sliding & (v_t > 0), 0.0, mu)
-    return friction, mu_lo, mu_hi
 
 
 def solve_impulses(world: World, cs: ContactSet, bodies: np.ndarray, b_n: np.ndarray,
@@ -249,12 +230,6 @@ class _IslandGeometry:
 
     def island_bodies(self, i: int) -> np.ndarray:
         return self.bodies[self.body_starts[i]:self.body_starts[i + 1]]
-
-
-# why a numba Dantzig pass gave up (``_kernels`` abort codes)
-_ABORTS = ('', 'pivot cap reached', 'no admissible step', 'non-finite step',
-           'invalid end of a drive', 'cycling', 'row-selection budget exhausted',
-           'numerical failure')
 
 
 class TimeStepper:
@@ -740,7 +715,7 @@ class TimeStepper:
                 for i in np.flatnonzero(bad):
                     stats.fallbacks += 1
                     if len(stats.messages) < 20:
-                        stats.messages.append(dantzig_message(res[i], codes[i]))
+                        stats.messages.append(lcp.dantzig_message(res[i], codes[i]))
             if large.any():
                 res, vres, work = K.solve_pgs(large, *data, lo, hi, x_n, x_t, v_t_new,
                                               np.zeros((w.n, 3)), st.pgs_tol_mps,
@@ -773,11 +748,3 @@ class TimeStepper:
         p_n[order] = x_n
         p_t[order] = x_t
         return np.flatnonzero(failed)
-
-
-def dantzig_message(residual: float, codes) -> str:
-    """The logged reason a compiled Dantzig answer was solved again by ``lcp.solve``."""
-    msg = f'dantzig (numba): {_ABORTS[codes[0]] or f"residual {residual:.3g}"}'
-    if codes[1]:
-        msg += f'; normals-first retry: {_ABORTS[codes[1]]}'
-    return msg + '; solved again by lcp.solve'

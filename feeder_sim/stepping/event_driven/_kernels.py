@@ -29,6 +29,7 @@ import numpy as np
 
 from feeder_sim._jit import jit
 from feeder_sim.contact._kernels import dantzig as _dantzig
+from feeder_sim.contact.candidates import world_point
 
 FIXED, DRIVEN, MOVING = 0, 1, 2
 DONE, EVENT, REFRESH = 0, 1, 2
@@ -39,13 +40,6 @@ BOX_ROW, SLAVED_ROW = 1, 2    # contact LCP row's friction (contact.dynamics)
 # a collision event fires (1e-12 m), so a corner that drifts by round-off stays flush.
 FLUSH_M = 1e-11
 FLUSH_ANGLE = 1e-9
-
-
-@jit
-def world_point(pos, ang, body, local):
-    c, s = math.cos(ang[body]), math.sin(ang[body])
-    return (pos[body, 0] + c * local[0] - s * local[1],
-            pos[body, 1] + s * local[0] + c * local[1])
 
 
 @jit

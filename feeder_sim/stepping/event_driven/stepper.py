@@ -75,6 +75,7 @@ from feeder_sim.contact.dynamics import (
     BOX,
     contact_set,
     ContactSet,
+    friction_rows,
     island_jacobian,
     islands,
     NONE,
@@ -82,11 +83,10 @@ from feeder_sim.contact.dynamics import (
     SolverStats,
 )
 from feeder_sim.model.scene import SolverSpec
-from feeder_sim.model.world import mix, perp, rot, State, World
+from feeder_sim.model.world import perp, rot, State, World
 from feeder_sim.stepping.event_driven import _chain as chain
 from feeder_sim.stepping.event_driven import _kernels as kern
 from feeder_sim.stepping.protocol import StepContacts
-from feeder_sim.stepping.time_stepping import dantzig_message, friction_rows
 
 STICK, SLIDE = kern.STICK, kern.SLIDE
 assert (BOX, SLAVED) == (kern.BOX_ROW, kern.SLAVED_ROW)
@@ -281,11 +281,7 @@ class EventDriven:
         self._active_vertex = np.flatnonzero(topo.vertex_active)
         self._piece_start = sh.piece_start
         self._piece_body = sh.piece_body
-        pair = np.indices((world.n, world.n)).reshape(2, -1)
-        self._materials = tuple(
-            mix(values[pair[0]], values[pair[1]], rule).reshape(world.n, world.n)
-            for values, rule in ((world.mu_static, 'friction'), (world.mu_dynamic, 'friction'),
-                                 (world.restitution, 'restitution')))
+        self._materials = world.pair_materials
         none_i, none_f, none_v = np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 2))
         self._no_contacts = (none_i, none_i, none_v, none_v, none_v, none_v, none_f,
                              np.zeros((0, 0)), none_i, none_f, none_f, none_i, 0)
@@ -1136,7 +1132,7 @@ class EventDriven:
         else:
             self.stats.fallbacks += 1
             if len(self.stats.messages) < 20:
-                self.stats.messages.append(dantzig_message(res, codes))
+                self.stats.messages.append(lcp.dantzig_message(res, codes))
             result = lcp.solve(lcp.FrictionalLCP(A, b, normal_of, lo, hi), tol=tol)
             f = P @ result.x
         self.stats.record(result)

@@ -1,0 +1,114 @@
+"""The package's import contract, read from the source (every import, at any depth of a module).
+
+Layers go one way: model -> contact -> stepping -> simulator -> output -> run -> reports, ros
+-> cli. The physics layers import no ROS, MCAP, plotting, replay or distributed-computing
+package; no stepping method imports another; output/ and ros/ never reach into a stepper; the
+node does not import the CLI's run loop.
+"""
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / 'feeder_sim'
+
+RANK = {'_jit': 0, 'model': 1, 'contact': 2, 'stepping': 3, 'simulator': 4, 'output': 5,
+        'run': 6, 'reports': 7, 'ros': 7, 'cli': 8}
+PHYSICS = ('model', 'contact', 'stepping')
+FORBIDDEN_IN_PHYSICS = ('rclpy', 'mcap', 'mcap_ros2', 'matplotlib', 'rerun', 'dask',
+                        'distributed', 'pyarrow', 'rosgraph_msgs', 'geometry_msgs',
+                        'sensor_msgs', 'std_msgs', 'visualization_msgs', 'diagnostic_msgs')
+METHODS = ('time_stepping', 'impulse_based', 'event_driven')
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for path in sorted(PACKAGE.rglob('*.py')):
+        parts = path.relative_to(PACKAGE.parent).with_suffix('').parts
+        if parts[-1] == '__init__':
+            parts = parts[:-1]
+        out['.'.join(parts)] = path
+    return out
+
+
+def _imports(name: str, path: Path) -> set[str]:
+    """Absolute names of every module ``name`` imports (relative imports resolved)."""
+    package = name if path.name == '__init__.py' else name.rpartition('.')[0]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            found.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ''
+            if node.level:
+                up = package.split('.')
+                base = '.'.join(up[:len(up) - node.level + 1] + ([base] if base else []))
+            found.add(base)
+            # `from feeder_sim.x import y` may name a submodule y
+            found.update(f'{base}.{a.name}' for a in node.names)
+    return found
+
+
+MODULES = _modules()
+IMPORTS = {name: _imports(name, path) for name, path in MODULES.items()}
+
+
+def _layer(module: str) -> str | None:
+    parts = module.split('.')
+    return parts[1] if len(parts) > 1 and parts[0] == 'feeder_sim' else None
+
+
+def _own(module: str) -> set[str]:
+    """feeder_sim modules (not names inside them) that ``module`` imports."""
+    return {m for m in IMPORTS[module] if m in MODULES and m != 'feeder_sim'}
+
+
+def test_every_module_has_a_layer():
+    assert {_layer(m) for m in MODULES} - {None} <= set(RANK)
+
+
+@pytest.mark.parametrize('module', [m for m in MODULES if _layer(m)])
+def test_imports_go_one_way(module):
+    rank = RANK[_layer(module)]
+    upward = sorted(m for m in _own(module) if _layer(m) and RANK[_layer(m)] > rank)
+    assert not upward, f'{module} imports a higher layer: {upward}'
+
+
+@pytest.mark.parametrize('module', [m for m in MODULES if _layer(m) in PHYSICS + ('_jit',)])
+def test_physics_imports_no_ros_mcap_plotting_or_dask(module):
+    bad = sorted(m for m in IMPORTS[module] if m.split('.')[0] in FORBIDDEN_IN_PHYSICS)
+    assert not bad, f'{module} imports {bad}'
+
+
+def _method_of(module: str) -> str | None:
+    parts = module.split('.')
+    if parts[:2] == ['feeder_sim', 'stepping'] and len(parts) > 2 and parts[2] in METHODS:
+        return parts[2]
+    return None
+
+
+@pytest.mark.parametrize('module', [m for m in MODULES if _method_of(m)])
+def test_no_stepping_method_imports_another(module):
+    mine = _method_of(module)
+    others = sorted(m for m in _own(module) if _method_of(m) not in (None, mine))
+    assert not others, f'{module} imports another stepping method: {others}'
+
+
+@pytest.mark.parametrize('module', [m for m in MODULES if _layer(m) in ('output', 'ros')])
+def test_output_and_ros_never_reach_into_a_stepper(module):
+    inner = sorted(m for m in _own(module) if _layer(m) == 'stepping')
+    assert not inner, f'{module} imports stepping internals: {inner}'
+
+
+def test_the_node_does_not_import_the_cli_run_loop():
+    for module in MODULES:
+        if _layer(module) == 'ros':
+            assert not _own(module) & {'feeder_sim.run', 'feeder_sim.cli'}, module
+
+
+def test_the_contract_is_checked_on_real_imports():
+    # the checker itself: a known import of each kind is seen
+    assert 'feeder_sim.stepping.protocol' in _own('feeder_sim.stepping.time_stepping')
+    assert 'rclpy' in IMPORTS['feeder_sim.ros.node']
+    assert 'feeder_sim.output.frames' in _own('feeder_sim.ros.node')
