@@ -70,6 +70,7 @@ import math
 import numpy as np
 
 from feeder_sim.contact import lcp
+from feeder_sim.contact.candidates import corner_piece_candidates
 from feeder_sim.contact.collision import Contacts, evaluate_gaps, find_contacts
 from feeder_sim.contact.dynamics import (
     BOX,
@@ -894,26 +895,12 @@ class EventDriven:
 
     def _find_candidates(self, state: State, margin: float) -> _Candidates:
         """Active corners against pieces of other bodies whose boxes are within ``margin``."""
-        w = self.world
-        vb, ps, pb = self._vertex_body, self._piece_start, self._piece_body
-        if len(pb) < 2:
+        if len(self._piece_body) < 2:
             none = np.zeros(0, dtype=np.int64)
             return _Candidates(none, none, self._candidate_arrays(none, none),
                                state.position.copy(), state.angle.copy(), margin, state.t)
-        ang = state.angle[vb]
-        c, s = np.cos(ang), np.sin(ang)
-        v = self._verts
-        wx = state.position[vb, 0] + c * v[:, 0] - s * v[:, 1]
-        wy = state.position[vb, 1] + s * v[:, 0] + c * v[:, 1]
-        lo = np.stack([np.minimum.reduceat(wx, ps[:-1]), np.minimum.reduceat(wy, ps[:-1])], 1)
-        hi = np.stack([np.maximum.reduceat(wx, ps[:-1]), np.maximum.reduceat(wy, ps[:-1])], 1)
-        near = np.all((lo[:, None, :] <= hi[None, :, :] + margin) &
-                      (lo[None, :, :] <= hi[:, None, :] + margin), axis=2)
-        dyn = w.dynamic[pb]
-        near &= (pb[:, None] != pb[None, :]) & (dyn[:, None] | dyn[None, :])
-        vertex_piece = self._vertex_piece[self._active_vertex]
-        rows, cols = np.nonzero(near[vertex_piece])
-        vertex, piece = self._active_vertex[rows], cols
+        vertex, piece = corner_piece_candidates(self.world, state, self._active_vertex,
+                                                margin)[:2]
         return _Candidates(vertex, piece, self._candidate_arrays(vertex, piece),
                            state.position.copy(), state.angle.copy(), margin, state.t)
 
