@@ -111,7 +111,7 @@ from feeder_sim.contact.collision import Contacts
 from feeder_sim.contact.dynamics import contact_set, SolverStats
 from feeder_sim.model.scene import SolverSpec
 from feeder_sim.model.world import State, World
-from feeder_sim.stepping.protocol import StepContacts
+from feeder_sim.stepping.protocol import StepContacts, StepperBase
 
 __all__ = ['CollisionResult', 'ImpulseBased', 'ImpulseSettings', 'collide', 'LAWS']
 
@@ -652,15 +652,15 @@ class _Candidates:
     stroke: np.ndarray      # (n,) widening of driven bodies' boxes used
 
 
-class ImpulseBased:
+class ImpulseBased(StepperBase):
     """Mirtich & Canny's impulse-based method: collisions only, one contact point at a time."""
+
+    settings_type = ImpulseSettings
 
     def __init__(self, world: World, spec: SolverSpec, stats: SolverStats,
                  settings: ImpulseSettings | None = None) -> None:
-        self.world = world
-        self.spec = spec
-        self.stats = stats
-        self.settings = st = settings or ImpulseSettings()
+        super().__init__(world, spec, stats, settings)
+        st = self.settings
         if spec.restitution_law not in LAWS:
             raise ValueError(f'restitution_law must be one of {", ".join(LAWS)}, got '
                              f'{spec.restitution_law!r}')

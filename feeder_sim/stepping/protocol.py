@@ -40,3 +40,17 @@ class Stepper(Protocol):
     def reset(self) -> None:
         """The prescribed motion changed at ``state.t``: forget what was derived from it."""
         ...
+
+
+class StepperBase:
+    """What every method keeps: the world, the scene's solver spec, the counters it adds to,
+    and its own settings (``settings_type()`` when none are given)."""
+
+    settings_type: type
+
+    def __init__(self, world: World, spec: SolverSpec, stats: SolverStats,
+                 settings: object | None = None) -> None:
+        self.world = world
+        self.spec = spec
+        self.stats = stats
+        self.settings = settings or self.settings_type()

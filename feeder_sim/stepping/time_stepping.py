@@ -92,7 +92,7 @@ from feeder_sim.contact.dynamics import (
 )
 from feeder_sim.model.scene import SolverSpec
 from feeder_sim.model.world import State, World
-from feeder_sim.stepping.protocol import StepContacts
+from feeder_sim.stepping.protocol import StepContacts, StepperBase
 
 
 @dataclass
@@ -232,15 +232,14 @@ class _IslandGeometry:
         return self.bodies[self.body_starts[i]:self.body_starts[i + 1]]
 
 
-class TimeStepper:
+class TimeStepper(StepperBase):
     """Advances a state by fixed steps of ``spec.time_step``."""
+
+    settings_type = TimeStepSettings
 
     def __init__(self, world: World, spec: SolverSpec, stats: SolverStats,
                  settings: TimeStepSettings | None = None) -> None:
-        self.world = world
-        self.spec = spec
-        self.stats = stats
-        self.settings = settings or TimeStepSettings()
+        super().__init__(world, spec, stats, settings)
         self._radius = world.radius
         self._dyn = world.dynamic
         self._dyn_idx = np.flatnonzero(self._dyn)

@@ -87,7 +87,7 @@ from feeder_sim.model.scene import SolverSpec
 from feeder_sim.model.world import perp, rot, State, World
 from feeder_sim.stepping.event_driven import _chain as chain
 from feeder_sim.stepping.event_driven import _kernels as kern
-from feeder_sim.stepping.protocol import StepContacts
+from feeder_sim.stepping.protocol import StepContacts, StepperBase
 
 STICK, SLIDE = kern.STICK, kern.SLIDE
 assert (BOX, SLAVED) == (kern.BOX_ROW, kern.SLAVED_ROW)
@@ -230,15 +230,14 @@ def _groups(cs: ContactSet) -> np.ndarray:
     return kern.contact_groups(c.body_a, c.body_b, c.normal)
 
 
-class EventDriven:
+class EventDriven(StepperBase):
     """Advances a state to any requested time, stopping at every contact event."""
+
+    settings_type = EventSettings
 
     def __init__(self, world: World, spec: SolverSpec, stats: SolverStats,
                  settings: EventSettings | None = None) -> None:
-        self.world = world
-        self.spec = spec
-        self.stats = stats
-        self.settings = settings or EventSettings()
+        super().__init__(world, spec, stats, settings)
         self.rtol = spec.tolerance
         dyn = np.flatnonzero(world.dynamic)
         self._dyn = dyn
