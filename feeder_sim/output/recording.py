@@ -14,7 +14,7 @@ file from which :func:`read_messages` recovers every message of the completed ch
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Container, Iterable, Iterator, Mapping, Sequence
 import contextlib
 import importlib.metadata
 import io
@@ -699,31 +699,13 @@ def read_messages(path: str | os.PathLike,
             if _MCAP_MAGIC.startswith(magic):
                 return  # cut off before (or inside) the leading magic
             raise ValueError(f'{os.fspath(path)!r} is not an MCAP file')
-        position = len(magic)
         channels: dict[int, str] = {}
-        while True:
-            head = stream.read(_RECORD_HEADER.size)
-            if len(head) < _RECORD_HEADER.size:
-                return
-            opcode, length = _RECORD_HEADER.unpack(head)
-            position += _RECORD_HEADER.size
-            if length > size - position:
-                return  # truncated record
-            if opcode not in (Opcode.CHANNEL, Opcode.MESSAGE, Opcode.CHUNK):
-                if opcode in (Opcode.FOOTER, Opcode.DATA_END):
-                    return
-                stream.seek(length, io.SEEK_CUR)
-                position += length
-                continue
-            body = stream.read(length)
-            position += length
-            if len(body) < length:
-                return
+        for opcode, body, offset in top_level_records(stream, size, _MESSAGE_OPCODES):
             try:
                 records = _parse_record(opcode, body)
             except Exception as exc:  # noqa: BLE001 - a damaged record ends the readable part
                 warnings.warn(f'{os.fspath(path)!r}: stopped reading at a damaged record '
-                              f'at offset {position - length - 9}: {exc}', stacklevel=2)
+                              f'at offset {offset - _RECORD_HEADER.size}: {exc}', stacklevel=2)
                 return
             for record in records:
                 if isinstance(record, Channel):
@@ -732,6 +714,37 @@ def read_messages(path: str | os.PathLike,
                     topic = channels.get(record.channel_id)
                     if topic is not None and (wanted is None or topic in wanted):
                         yield topic, record.log_time, record.data
+
+
+_MESSAGE_OPCODES = frozenset((Opcode.CHANNEL, Opcode.MESSAGE, Opcode.CHUNK))
+
+
+def top_level_records(stream, size: int, opcodes: Container[int]
+                      ) -> Iterator[tuple[int, bytes, int]]:
+    """``(opcode, body, offset)`` of the top-level records from the stream's position (just past
+    the magic) on, for the opcodes asked for; other records are skipped unread.
+
+    Needs neither the summary nor the footer (a killed writer leaves neither): stops at the
+    footer, at the data end, or quietly at the first record the file holds only part of.
+    ``offset`` is the body's position in the file, ``size`` the file's length.
+    """
+    position = stream.tell()
+    while True:
+        head = stream.read(_RECORD_HEADER.size)
+        if len(head) < _RECORD_HEADER.size:
+            return
+        opcode, length = _RECORD_HEADER.unpack(head)
+        position += _RECORD_HEADER.size
+        if length > size - position or opcode in (Opcode.FOOTER, Opcode.DATA_END):
+            return
+        if opcode in opcodes:
+            body = stream.read(length)
+            if len(body) < length:
+                return
+            yield opcode, body, position
+        else:
+            stream.seek(length, io.SEEK_CUR)
+        position += length
 
 
 def _parse_record(opcode: int, body: bytes) -> list:

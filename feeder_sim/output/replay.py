@@ -73,6 +73,7 @@ from feeder_sim.output.recording import (
     CONTACT_FIELDS,
     CONTACT_POINT_DTYPE,
     read_messages,
+    top_level_records,
     TOPIC_CONTACTS,
     TOPIC_PART_POSES,
     TOPIC_TRACK_STATE,
@@ -95,7 +96,6 @@ ARROW_PERCENTILE = 95.0
 DEFAULT_PART_SIZE_M = 0.01
 
 _MCAP_MAGIC = b'\x89MCAP0\r\n'
-_RECORD_HEADER = struct.Struct('<BQ')
 _U32 = struct.Struct('<I')
 _CDR_LE = b'\x00\x01'  # encapsulation kind: plain CDR, little endian (what ROS 2 writes)
 
@@ -167,24 +167,13 @@ def _read_metadata(path: Path) -> dict[str, dict[str, str]]:
     found: dict[str, dict[str, str]] = {}
     with open(path, 'rb') as stream:
         size = os.fstat(stream.fileno()).st_size
-        position = stream.seek(len(_MCAP_MAGIC))
-        while True:
-            head = stream.read(_RECORD_HEADER.size)
-            if len(head) < _RECORD_HEADER.size:
+        stream.seek(len(_MCAP_MAGIC))
+        for _, body, _ in top_level_records(stream, size, (Opcode.METADATA,)):
+            try:
+                record = Metadata.read(ReadDataStream(io.BytesIO(body)))
+            except Exception:  # noqa: BLE001 - a damaged record ends the readable part
                 break
-            opcode, length = _RECORD_HEADER.unpack(head)
-            position += _RECORD_HEADER.size
-            if length > size - position or opcode in (Opcode.FOOTER, Opcode.DATA_END):
-                break
-            if opcode == Opcode.METADATA:
-                try:
-                    record = Metadata.read(ReadDataStream(io.BytesIO(stream.read(length))))
-                except Exception:  # noqa: BLE001 - a damaged record ends the readable part
-                    break
-                found[record.name] = record.metadata
-            else:
-                stream.seek(length, io.SEEK_CUR)
-            position += length
+            found[record.name] = record.metadata
     return found
 
 
