@@ -82,7 +82,7 @@ Contacts are sorted by body pair (min body, max body), then ``piece_a``, ``verte
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from functools import cached_property
 import math
 
@@ -435,11 +435,11 @@ class Contacts:
 
     def take(self, index: np.ndarray) -> Contacts:
         """Subset (or reordering) of the contacts selected by an index or boolean mask."""
-        return Contacts(*(np.asarray(getattr(self, f))[index] for f in _CONTACT_FIELDS))
+        return Contacts(*(np.asarray(getattr(self, f))[index] for f in CONTACT_FIELDS))
 
 
-_CONTACT_FIELDS = ("body_a", "piece_a", "vertex_a", "body_b", "piece_b", "edge_b", "point",
-                   "normal", "gap", "edge_param")
+#: Names of the :class:`Contacts` arrays, in constructor order.
+CONTACT_FIELDS = tuple(f.name for f in fields(Contacts))
 
 
 # --------------------------------------------------------------------------------------------

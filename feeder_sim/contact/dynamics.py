@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from feeder_sim.contact._kernels import island_groups
-from feeder_sim.contact.collision import Contacts
+from feeder_sim.contact.collision import CONTACT_FIELDS, Contacts
 from feeder_sim.contact.lcp import FrictionalLCP
 from feeder_sim.model.world import cross2, mix, perp, State, World
 
@@ -42,13 +42,11 @@ class ContactSet:
 
     def subset(self, idx: np.ndarray) -> ContactSet:
         c = self.contacts
-        sub = Contacts(*(getattr(c, f)[idx] for f in _CONTACT_FIELDS))
+        sub = Contacts(*(getattr(c, f)[idx] for f in CONTACT_FIELDS))
         return ContactSet(sub, self.tangent[idx], self.r_a[idx], self.r_b[idx],
                           self.mu_static[idx], self.mu_dynamic[idx], self.restitution[idx])
 
 
-_CONTACT_FIELDS = ('body_a', 'piece_a', 'vertex_a', 'body_b', 'piece_b', 'edge_b', 'point',
-                   'normal', 'gap', 'edge_param')
 
 
 def contact_set(world: World, state: State, contacts: Contacts) -> ContactSet:

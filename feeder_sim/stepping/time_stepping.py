@@ -72,14 +72,20 @@ the PGS sweep against a plain transcription of it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 
 from feeder_sim.contact import _kernels as K
 from feeder_sim.contact import lcp
 from feeder_sim.contact._kernels import island_groups
-from feeder_sim.contact.collision import Contacts, DEPTH_FRACTION, evaluate_gaps, find_contacts
+from feeder_sim.contact.collision import (
+    CONTACT_FIELDS,
+    Contacts,
+    DEPTH_FRACTION,
+    evaluate_gaps,
+    find_contacts,
+)
 from feeder_sim.contact.dynamics import (
     assemble,
     BOX,
@@ -195,7 +201,6 @@ class _Warm:
 # values ~10x faster than ``a[i]`` (numpy's fancy indexing walks a 2-element subspace per row),
 # and ``compress`` / ``np.add(..., where=)`` likewise beat boolean and fancy indexing. With
 # hundreds of contacts and ~40 such arrays per step this is a tenth of a pile step.
-_CONTACT_FIELDS = tuple(f.name for f in fields(Contacts))
 
 
 def cap_moves(move: np.ndarray, radius_m: np.ndarray, limit_m) -> np.ndarray:
@@ -208,7 +213,7 @@ def cap_moves(move: np.ndarray, radius_m: np.ndarray, limit_m) -> np.ndarray:
 
 def _take(contacts: Contacts, index: np.ndarray) -> Contacts:
     """``contacts.take(index)`` (the same arrays) by ``ndarray.take``."""
-    return Contacts(*(getattr(contacts, f).take(index, axis=0) for f in _CONTACT_FIELDS))
+    return Contacts(*(getattr(contacts, f).take(index, axis=0) for f in CONTACT_FIELDS))
 
 
 class _IslandGeometry:
@@ -481,7 +486,7 @@ class TimeStepper(StepperBase):
         extra = contact_set(self.world, State(0.0, mid_position, None, None, None), spare)
         c1, c2 = cs.contacts, extra.contacts
         both = ContactSet(Contacts(*(np.concatenate([getattr(c1, f), getattr(c2, f)])
-                                     for f in _CONTACT_FIELDS)),
+                                     for f in CONTACT_FIELDS)),
                           *(np.concatenate([getattr(cs, f), getattr(extra, f)])
                             for f in ('tangent', 'r_a', 'r_b', 'mu_static', 'mu_dynamic',
                                       'restitution')))
