@@ -20,11 +20,16 @@ import numpy as np
 
 from feeder_sim.contact.collision import ShapeSet
 from feeder_sim.model.geometry import mass_properties
+from feeder_sim.model.scene import BODY_TYPES as scene_body_types
 from feeder_sim.model.scene import Scene
 from feeder_sim.model.vibration import Drive
 
-STATIC, KINEMATIC, DYNAMIC = 0, 1, 2
-BODY_TYPES = {'static': STATIC, 'kinematic': KINEMATIC, 'dynamic': DYNAMIC}
+# body kinds, as codes in World.body_type (the names and their order are scene.BODY_TYPES')
+BODY_TYPES = {name: code for code, name in enumerate(scene_body_types)}
+STATIC, KINEMATIC, DYNAMIC = (BODY_TYPES[k] for k in ('static', 'kinematic', 'dynamic'))
+# how a compiled stepper moves a body: FIXED (static, or kinematic at rest), DRIVEN (a drive's
+# sinusoid) or MOVING (dynamic: by the equations of motion)
+FIXED, DRIVEN, MOVING = 0, 1, 2
 
 
 def rot(theta: np.ndarray | float) -> np.ndarray:

@@ -110,7 +110,7 @@ from feeder_sim.contact.candidates import corner_piece_candidates, world_point
 from feeder_sim.contact.collision import Contacts
 from feeder_sim.contact.dynamics import contact_set, SolverStats
 from feeder_sim.model.scene import SolverSpec
-from feeder_sim.model.world import State, World
+from feeder_sim.model.world import DRIVEN, FIXED, MOVING, State, World
 from feeder_sim.stepping.protocol import StepContacts, StepperBase
 
 __all__ = ['CollisionResult', 'ImpulseBased', 'ImpulseSettings', 'collide', 'LAWS']
@@ -124,7 +124,6 @@ _SLIDE, _STICK, _REVERSE, _JAM = 1, 2, 4, 8
 _PHASE_NAMES = ((_SLIDE, 'slide'), (_STICK, 'stick'), (_REVERSE, 'reverse'), (_JAM, 'jam'))
 
 # kinds of bodies in the kernel
-_FIXED, _DRIVEN, _DYNAMIC = 0, 1, 2
 # kernel return codes
 _DONE, _REFRESH = 0, 1
 # kernel counters
@@ -356,13 +355,13 @@ def _poses(t1, h, kind, drive_row, drives, gravity, pos, ang, vel, om, pos1, ang
     """Free flight from t1 - h to t1: ballistic dynamic bodies, driven bodies on their drives."""
     for i in range(kind.shape[0]):
         k = kind[i]
-        if k == _DYNAMIC:
+        if k == MOVING:
             for j in range(2):
                 pos1[i, j] = pos[i, j] + h * (vel[i, j] + 0.5 * h * gravity[j])
                 vel1[i, j] = vel[i, j] + h * gravity[j]
             ang1[i] = ang[i] + h * om[i]
             om1[i] = om[i]
-        elif k == _DRIVEN:
+        elif k == DRIVEN:
             row = drives[drive_row[i]]
             d, v, _ = _drive_motion(t1, row)
             for j in range(2):
@@ -573,7 +572,7 @@ def _run(t, t_stop, pos, ang, vel, om, kind, drive_row, drives, drive_speed, gra
             return t, _DONE
         moved = speed = 0.0
         for i in range(n):
-            if kind[i] == _DYNAMIC:
+            if kind[i] == MOVING:
                 d = (math.hypot(pos[i, 0] - anchor_pos[i, 0], pos[i, 1] - anchor_pos[i, 1])
                      + abs(ang[i] - anchor_ang[i]) * radius[i])
                 moved = max(moved, d)
@@ -686,8 +685,8 @@ class ImpulseBased(StepperBase):
         self._piece_body = sh.piece_body.astype(np.int64)
         self._max_piece = int(np.max(np.diff(self._piece_start), initial=3))
         dyn = world.dynamic
-        self._kind = np.where(dyn, _DYNAMIC, _FIXED).astype(np.int64)
-        self._kind[world.driven] = _DRIVEN
+        self._kind = np.where(dyn, MOVING, FIXED).astype(np.int64)
+        self._kind[world.driven] = DRIVEN
         self._drive_row = np.full(world.n, -1, np.int64)
         self._drive_row[world.driven] = np.arange(len(world.driven))
         self._radius = world.radius.astype(float)

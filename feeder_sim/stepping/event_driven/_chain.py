@@ -28,6 +28,7 @@ import math
 import numpy as np
 
 from feeder_sim._jit import jit
+from feeder_sim.model.world import DRIVEN, MOVING
 from feeder_sim.stepping.event_driven import _kernels as kern
 
 DONE, EVENT, REFRESH = kern.DONE, kern.EVENT, kern.REFRESH
@@ -79,9 +80,9 @@ def _free_acceleration(t, kind, index, drives, gravity, acc):
     drive's on driven ones, none on the others."""
     dr_u, _, dr_amp, dr_w, dr_phase, t_ref = drives
     for i in range(kind.shape[0]):
-        if kind[i] == kern.MOVING:
+        if kind[i] == MOVING:
             acc[i, 0], acc[i, 1] = gravity[0], gravity[1]
-        elif kind[i] == kern.DRIVEN:
+        elif kind[i] == DRIVEN:
             d = index[i]
             a = -dr_amp[d] * dr_w[d] * dr_w[d] * math.sin(dr_phase[d] + dr_w[d] * (t - t_ref))
             acc[i, 0], acc[i, 1] = a * dr_u[d, 0], a * dr_u[d, 1]

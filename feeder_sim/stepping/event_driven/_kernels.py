@@ -30,8 +30,8 @@ import numpy as np
 from feeder_sim._jit import jit
 from feeder_sim.contact._kernels import dantzig as _dantzig
 from feeder_sim.contact.candidates import world_point
+from feeder_sim.model.world import DRIVEN, FIXED
 
-FIXED, DRIVEN, MOVING = 0, 1, 2
 DONE, EVENT, REFRESH = 0, 1, 2
 NO_FRICTION, STICK, SLIDE = 0, 1, 2
 BOX_ROW, SLAVED_ROW = 1, 2    # contact LCP row's friction (contact.dynamics)

@@ -84,7 +84,7 @@ from feeder_sim.contact.dynamics import (
     SolverStats,
 )
 from feeder_sim.model.scene import SolverSpec
-from feeder_sim.model.world import perp, rot, State, World
+from feeder_sim.model.world import DRIVEN, FIXED, MOVING, perp, rot, State, World
 from feeder_sim.stepping.event_driven import _chain as chain
 from feeder_sim.stepping.event_driven import _kernels as kern
 from feeder_sim.stepping.protocol import StepContacts, StepperBase
@@ -775,7 +775,7 @@ class EventDriven(StepperBase):
         if self._drives is not None and self._drives[0] == key:
             return self._drives[1]
         n = w.n
-        kind = np.where(w.dynamic, kern.MOVING, kern.FIXED).astype(np.int64)
+        kind = np.where(w.dynamic, MOVING, FIXED).astype(np.int64)
         index = np.full(n, -1, dtype=np.int64)
         u, base, amp, omega, phase = [], [], [], [], []
         for i in w.driven:
@@ -788,7 +788,7 @@ class EventDriven(StepperBase):
             sn, cs = d / a, v / (a * om)
             if abs(math.hypot(sn, cs) - 1.0) > 1e-9:
                 return None
-            kind[i], index[i] = kern.DRIVEN, len(amp)
+            kind[i], index[i] = DRIVEN, len(amp)
             u.append(drive.direction)
             base.append(w.base_position[i])
             amp.append(a)
