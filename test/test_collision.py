@@ -16,8 +16,8 @@ from feeder_sim.contact.collision import (
     Contacts,
     evaluate_gaps,
     find_contacts,
-    ShapeSet,
 )
+from feeder_sim.model.shapes import ShapeSet
 
 W, H = 0.02, 0.01  # box size, m
 TRACK_L, TRACK_T = 0.2, 0.002  # track length and thickness, m

@@ -18,10 +18,10 @@ import math
 
 import numpy as np
 
-from feeder_sim.contact.collision import ShapeSet
 from feeder_sim.model.geometry import mass_properties
 from feeder_sim.model.scene import BODY_TYPES as scene_body_types
 from feeder_sim.model.scene import Scene
+from feeder_sim.model.shapes import ShapeSet
 from feeder_sim.model.vibration import Drive
 
 # body kinds, as codes in World.body_type (the names and their order are scene.BODY_TYPES')
