@@ -567,3 +567,35 @@ def test_residual_definition():
                   + np.repeat(np.arange(10) * 2, 2) * np.tile([0, 1], 10),
                   np.tile(p.mu_lo, 10), np.tile(p.mu_hi, 10))
     assert residual(big, np.tile(y, 10)) == pytest.approx(residual(p, y), rel=1e-12)
+
+
+def test_compiled_dantzig_gives_the_answers_of_the_python_reference():
+    # The numba port (contact._lcp_kernels.dantzig) against lcp.solve's Dantzig pass on random
+    # frictional Delassus problems: it converges wherever the reference does, to the same
+    # impulses within 1e-9 of their scale (measured: 6e-12), and takes the same pivots on all
+    # but at most 1 % of the problems (measured: 1 of 256, 24 pivots against 22).
+    import numba
+
+    from feeder_sim.contact._lcp_kernels import dantzig as inner_dantzig
+
+    @numba.njit
+    def dantzig(A, b, nof, lo, hi, max_pivots):   # the kernel has no Python wrapper
+        return inner_dantzig(A, b, nof, lo, hi, max_pivots)
+
+    rng = np.random.default_rng(7)
+    compared = same_pivots = 0
+    for _ in range(300):
+        W, Jv, _, _ = random_delassus(rng, int(rng.integers(1, 5)), int(rng.integers(1, 9)))
+        c = len(W) // 2
+        lo, hi = random_friction_rows(rng, c, Jv[c:])
+        p = friction_problem(W, Jv, lo, hi)
+        ref = solve(p, methods=('dantzig',))
+        if ref.method == 'trivial' or not ref.converged:
+            continue
+        x, pivots, _, _ = dantzig(p.A, p.b, p.normal_of, p.mu_lo, p.mu_hi, 50 * len(p.b) + 50)
+        compared += 1
+        same_pivots += pivots == ref.pivots
+        assert residual(p, x) <= 1e-9
+        np.testing.assert_allclose(x, ref.x, rtol=0, atol=1e-9 * np.abs(ref.x).max())
+    assert compared >= 200
+    assert same_pivots >= 0.99 * compared

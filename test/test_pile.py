@@ -1,12 +1,12 @@
 """The compiled paths of ``time_stepping`` on a small pile against straightforward references.
 
-Parts dropped on a walled vibrating track (as ``benchmarks/pile.py``, fewer parts) give every
-kind of island: single parts landing, small stacks projected out of the track, piles for the
-projected Gauss-Seidel. Each compiled path is checked against the code it replaced while the
-simulation runs: the per-contact rows (``_kernels.contact_rows``) bit for bit against numpy, the
-position projection (``solve_small`` on the normal rows) against ``lcp.solve`` island by island,
-the PGS kernel bit for bit against a plain transcription, and the vectorised impulse log bit for
-bit against a running sum per feature.
+Parts dropped on a walled vibrating track (as ``benchmarks/pile.py``, fewer parts) give every kind
+of island: single parts landing, small stacks projected out of the track, piles for the projected
+Gauss-Seidel. Each compiled path is checked against the code it replaced while the simulation runs:
+the per-contact rows (``_island_kernels.contact_rows``) bit for bit against numpy, the position
+projection (``solve_small`` on the normal rows) against ``lcp.solve`` island by island, the PGS
+kernel bit for bit against a plain transcription, and the vectorised impulse log bit for bit
+against a running sum per feature.
 """
 
 import math
@@ -14,7 +14,7 @@ import math
 import numpy as np
 import pytest
 
-from feeder_sim.contact import _kernels as K
+from feeder_sim.contact import _island_kernels as K
 from feeder_sim.contact.collision import evaluate_gaps
 from feeder_sim.model.builders import build, conveyor
 from feeder_sim.simulator import _ImpulseLog, ContactReport, Simulator
@@ -111,7 +111,7 @@ def test_compiled_projection_matches_lcp_solve():
 
 def pgs_reference(select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, b_n,
                   b_t, box, mu_lo, mu_hi, x_n, x_t, w_t, dv, tol, max_sweeps, check, omega):
-    """``_kernels.solve_pgs`` as it was written before the sweep was tuned, in plain Python."""
+    """``solve_pgs`` as it was written before the sweep was tuned, in plain Python."""
     c = len(a)
     ja, jb, ma, mb = (np.empty((2 * c, 3)) for _ in range(4))
     for i in range(2 * c):

@@ -38,7 +38,7 @@ Pipeline of :func:`find_contacts`
    are removed, vertex-on-vertex pairs are reduced to one contact, duplicates of the same
    body-frame vertex against parallel edges of one body are merged, and the result is sorted.
 
-Steps 2-4 run in numba kernels (``_kernels.narrow_phase``, ``_kernels.clean_contacts``): the
+Steps 2-4 run in numba kernels (``_collision_kernels.narrow_phase``, ``clean_contacts``): the
 same tests with the same arithmetic, so the contacts are identical to the bit to those of the
 vectorised numpy functions below (``candidate_pairs``, ``_vertices_vs_edges``,
 ``_not_internal``, ``_vertex_vertex_keep``, ``_merge_duplicates``), which stay as the
@@ -86,7 +86,7 @@ import math
 
 import numpy as np
 
-from feeder_sim.contact._kernels import clean_contacts, narrow_phase
+from feeder_sim.contact._collision_kernels import clean_contacts, narrow_phase
 from feeder_sim.model.shapes import ANGLE_TOL, PARAM_TOL, ShapeSet, ShapeTopology
 
 __all__ = [

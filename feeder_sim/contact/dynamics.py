@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from feeder_sim.contact._kernels import island_groups
+from feeder_sim.contact._island_kernels import island_groups
 from feeder_sim.contact.collision import CONTACT_FIELDS, Contacts
 from feeder_sim.contact.lcp import FrictionalLCP
 from feeder_sim.model.world import cross2, mix, perp, State, World
@@ -203,7 +203,7 @@ class SolverStats:
     cascades: int = 0          # event cascades stepped past (event driven)
     islands: int = 0           # islands with contacts, summed over steps (time stepping)
     pgs_solves: int = 0        # LCPs answered by the large-island projected Gauss-Seidel
-    max_pgs_velocity_residual_mps: float = 0.0   # worst PGS answer, m/s (see _kernels)
+    max_pgs_velocity_residual_mps: float = 0.0   # worst PGS answer, m/s (see _island_kernels)
     lcp_rows: int = 0          # rows of the non-trivial LCPs, summed
     max_lcp_rows: int = 0      # rows of the largest non-trivial LCP
     messages: list = field(default_factory=list)

@@ -939,7 +939,7 @@ def solve(problem: FrictionalLCP, *, tol: float = 1e-9, max_pivots: int | None =
                      '; '.join(failures))
 
 
-# why a numba Dantzig pass gave up (``_kernels`` abort codes)
+# why a numba Dantzig pass gave up (``_lcp_kernels`` abort codes)
 _ABORTS = ('', 'pivot cap reached', 'no admissible step', 'non-finite step',
            'invalid end of a drive', 'cycling', 'row-selection budget exhausted',
            'numerical failure')

@@ -29,20 +29,19 @@ Constant-acceleration motion (a block sliding on an incline) is integrated exact
 
 Which solver serves which island
 --------------------------------
-Islands are groups of dynamic bodies joined by contacts (``_kernels.island_groups``); every
+Islands are groups of dynamic bodies joined by contacts (``_island_kernels.island_groups``); every
 island's problem is the ``dynamics.assemble`` layout (normals, then the friction rows kept).
 
 * no normal row with b < 0: zero impulses, counted as a trivial solve (as ``lcp.solve``);
 * at most ``direct_max_rows`` (48) rows: Baraff-Dantzig pivoting, exact to ``lcp_tol`` on the
-  ``lcp.residual`` scale: ``_kernels.dantzig``, a numba port of ``lcp``'s Dantzig pass (same
-  sets, events, tie-breaking, cycling/fold handling, normals-first retry and polish; it takes
-  the same pivots as ``lcp.solve`` on the problems checked, and the single box on a vibrating
-  track gives the same conveying speed to the last bit). It is 40-100x faster than
-  ``lcp.solve`` in Python (4 rows: 0.5 ms -> ~5 us; 30-38 rows: 1.5-5 ms -> 35-150 us). If
-  its answer misses ``lcp_tol`` the island is solved again by the reference path
-  (``solve_impulses``: ``lcp.solve`` and its Lemke / PGS / frictionless ladder) and counted in
-  ``stats.fallbacks``;
-* larger islands (piles): projected Gauss-Seidel in velocity form (``_kernels.solve_pgs``,
+  ``lcp.residual`` scale: ``_lcp_kernels.dantzig``, a numba port of ``lcp``'s Dantzig pass (same
+  sets, events, tie-breaking, cycling/fold handling, normals-first retry and polish; it takes the
+  same pivots as ``lcp.solve`` on the problems checked, and the single box on a vibrating track
+  gives the same conveying speed to the last bit). It is 40-100x faster than ``lcp.solve`` in
+  Python (4 rows: 0.5 ms -> ~5 us; 30-38 rows: 1.5-5 ms -> 35-150 us). If its answer misses
+  ``lcp_tol`` the island is solved again by the reference path (``solve_impulses``: ``lcp.solve``
+  and its Lemke / PGS / frictionless ladder) and counted in ``stats.fallbacks``;
+* larger islands (piles): projected Gauss-Seidel in velocity form (``_island_kernels.solve_pgs``,
   SOR factor ``pgs_omega``), warm-started with the previous step's impulses of the same
   vertex-edge features, each normal followed by its friction row. Pivoting does not scale:
   every pivot solves the clamped system, so a pile's 1 070-row island took 1 250 pivots and
@@ -61,9 +60,9 @@ Compiled paths and their references
 A step's work is kept out of Python loops and per-island numpy calls (benchmarks/pile.py:
 200 parts ~2 ms per step, most of it the PGS sweeps and the contact search): the per-contact
 set-up (index set, Newton / push-out rows, Kawachi's bounds) is one kernel,
-``_kernels.contact_rows``, with the bits of the numpy code it replaced
+``_island_kernels.contact_rows``, with the bits of the numpy code it replaced
 (``_contact_rows_reference``); the position projection of the small islands solves their
-normal-row LCPs together with the compiled Dantzig (``_kernels.solve_small``), ``lcp.solve``
+normal-row LCPs together with the compiled Dantzig (``_island_kernels.solve_small``), ``lcp.solve``
 only for an island it cannot solve, where ``_project_reference`` solves each island by
 ``lcp.solve`` with numpy Jacobians (same problems and pivots, positions within ~1e-18 m: the
 sums run in another order). test/test_pile.py checks both while a pile falls and settles, and
@@ -76,9 +75,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from feeder_sim.contact import _kernels as K
+from feeder_sim.contact import _island_kernels as K
 from feeder_sim.contact import lcp
-from feeder_sim.contact._kernels import island_groups
+from feeder_sim.contact._island_kernels import island_groups
 from feeder_sim.contact.collision import (
     CONTACT_FIELDS,
     Contacts,
@@ -371,7 +370,7 @@ class TimeStepper(StepperBase):
         every contact (with ``mask``) back to within ``projection_slop_m``.
 
         The islands with a deep contact are solved together by the compiled Dantzig
-        (``_kernels.solve_small`` with no friction rows: the normal rows of each island, the
+        (``_island_kernels.solve_small`` with no friction rows: the normal rows of each island, the
         problem ``_project_reference`` gives ``lcp.solve``); an island whose answer misses
         ``lcp_tol`` is solved again by ``lcp.solve`` and its whole ladder, as before.
         """
@@ -626,7 +625,7 @@ class TimeStepper(StepperBase):
 
     def _contact_rows(self, contacts, groups: tuple, state: State, mid: State, end: State,
                       h: float, slip_tol: float, reach_m: float) -> tuple:
-        """Which contacts take part and their LCP rows, by ``_kernels.contact_rows``: (kept
+        """Which contacts take part and their LCP rows, by ``_island_kernels.contact_rows``: (kept
         indices, tangent, r_a, r_b, mu_static, mu_dynamic, restitution, v_n_free, v_t_free,
         v_t_pre, pile, colliding, b_n, box, mu_lo, mu_hi, smallest gap). ``reach_m`` is the
         distance a point can travel in the step (the contact search's margin)."""

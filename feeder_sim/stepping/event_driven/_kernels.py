@@ -28,7 +28,7 @@ import math
 import numpy as np
 
 from feeder_sim._jit import jit
-from feeder_sim.contact._kernels import dantzig as _dantzig
+from feeder_sim.contact._lcp_kernels import dantzig as _dantzig
 from feeder_sim.contact.candidates import world_point
 from feeder_sim.model.world import DRIVEN, FIXED
 
@@ -660,7 +660,7 @@ def lcp_known_pattern(W, b_full, friction, mu_lo, mu_hi, slave, pattern):
 @jit
 def lcp_dantzig(W, b_full, friction, mu_lo, mu_hi, slave):
     """Solve the contact LCP from scratch by the compiled Baraff-Dantzig pivoting
-    (:func:`feeder_sim.contact._kernels.dantzig`, a port of ``lcp.solve``'s first method):
+    (:func:`feeder_sim.contact._lcp_kernels.dantzig`, a port of ``lcp.solve``'s first method):
     ``(stacked solution, x, w, residual, pivots, abort codes)`` with the reduced problem
     ``(A, b, normal_of, lo, hi)`` for the caller's fallback when the residual misses."""
     A, P, rows, normal_of, lo, hi = reduce_lcp(W, friction, mu_lo, mu_hi, slave)

@@ -904,7 +904,7 @@ class EventDriven(StepperBase):
                            state.position.copy(), state.angle.copy(), margin, state.t)
 
     def _candidate_arrays(self, vertex: np.ndarray, piece: np.ndarray) -> tuple:
-        """Kernel arrays of candidate corners against pieces (see :mod:`_ed_kernels`)."""
+        """Kernel arrays of candidate corners against pieces (see :mod:`._kernels`)."""
         v, ps = self._verts, self._piece_start
         wedge = np.stack([v[self._next_vertex[vertex]] - v[vertex],
                           v[self._prev_vertex[vertex]] - v[vertex]], axis=1).reshape(-1, 2, 2)

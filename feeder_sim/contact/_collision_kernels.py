@@ -1,0 +1,299 @@
+"""Compiled narrow phase and contact clean-up of ``collision.find_contacts``.
+
+They give the same contacts, to the bit, as the numpy reference functions in ``collision``
+(``_vertices_vs_edges``, ``_not_internal``, ``_vertex_vertex_keep``, ``_merge_duplicates``),
+with the same tests and arithmetic. Library sorts, ``searchsorted`` and sets are avoided: each
+pulls seconds of generic code into the compile.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from feeder_sim._jit import inner, jit
+
+
+@inner
+def _argsort(keys):
+    """Stable argsort (bottom-up merge sort). Hand-written because ``np.argsort`` with a
+    ``kind`` compiles numba's generic sorts and string handling: seconds of compile time."""
+    n = keys.shape[0]
+    idx = np.empty(n, np.int64)
+    for i in range(n):
+        idx[i] = i
+    tmp = np.empty(n, np.int64)
+    width = 1
+    while width < n:
+        lo = 0
+        while lo < n:
+            mid = min(lo + width, n)
+            hi = min(lo + 2 * width, n)
+            i, j, k = lo, mid, lo
+            while i < mid and j < hi:
+                if keys[idx[j]] < keys[idx[i]]:
+                    tmp[k] = idx[j]
+                    j += 1
+                else:
+                    tmp[k] = idx[i]
+                    i += 1
+                k += 1
+            while i < mid:
+                tmp[k] = idx[i]
+                i += 1
+                k += 1
+            while j < hi:
+                tmp[k] = idx[j]
+                j += 1
+                k += 1
+            lo += 2 * width
+        idx, tmp = tmp, idx
+        width *= 2
+    return idx
+
+
+@inner
+def _where(mask):
+    n = 0
+    for v in mask:
+        n += v
+    out = np.empty(n, np.int64)
+    q = 0
+    for i in range(mask.shape[0]):
+        if mask[i]:
+            out[q] = i
+            q += 1
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# collision detection: broad and narrow phase of ``collision.find_contacts``
+
+
+@inner
+def _vertex_edge(pv_lo, pv_hi, qe_lo, qe_hi, w, nw, active, internal, nxt, prv, elen, margin,
+                 depth, tie, param_tol, angle_tol, out_v, out_e, out_g, out_t, n_out):
+    """Vertices pv_lo..pv_hi-1 of one piece against edges qe_lo..qe_hi-1 of another: the
+    per-vertex body of ``collision._vertices_vs_edges`` (same arithmetic, same bits)."""
+    for v in range(pv_lo, pv_hi):
+        if not active[v]:
+            continue
+        px, py = w[v, 0], w[v, 1]
+        dmax = -np.inf
+        for e in range(qe_lo, qe_hi):
+            if not internal[e]:
+                d = nw[e, 0] * (px - w[e, 0]) + nw[e, 1] * (py - w[e, 1])
+                if d > dmax:
+                    dmax = d
+        if not (dmax - tie <= margin and dmax >= -depth):
+            continue
+        ip, ix = prv[v], nxt[v]
+        ux, uy = w[ip, 0] - px, w[ip, 1] - py
+        xx, xy = w[ix, 0] - px, w[ix, 1] - py
+        slack_u = max(margin, angle_tol * elen[ip])
+        slack_x = max(margin, angle_tol * elen[v])
+        best = -np.inf
+        best_e = -1
+        best_t = 0.0
+        for e in range(qe_lo, qe_hi):
+            if internal[e]:
+                continue
+            nx, ny = nw[e, 0], nw[e, 1]
+            dx, dy = px - w[e, 0], py - w[e, 1]
+            d = nx * dx + ny * dy
+            q1 = nxt[e]
+            ex, ey = w[q1, 0] - w[e, 0], w[q1, 1] - w[e, 1]
+            t = (dx * ex + dy * ey) / (ex * ex + ey * ey)
+            if not (t >= -param_tol and t <= 1.0 + param_tol):
+                continue
+            if not (ux * nx + uy * ny >= -slack_u and xx * nx + xy * ny >= -slack_x):
+                continue
+            if d > best:
+                best, best_e, best_t = d, e, t
+        if best_e >= 0 and best <= margin and best >= -depth:
+            out_v[n_out] = v
+            out_e[n_out] = best_e
+            out_g[n_out] = best
+            out_t[n_out] = best_t
+            n_out += 1
+    return n_out
+
+
+@jit
+def narrow_phase(w, nw, lo, hi, piece_start, piece_body, take, dyn, bp_margin, margin,
+                 depth, piece_width, depth_fraction, coord, radius, tie_rel, active, internal,
+                 nxt, prv, elen, param_tol, angle_tol):
+    """Vertex-edge contacts of all piece pairs whose AABBs are within ``bp_margin``.
+
+    The pair set is that of ``collision.candidate_pairs`` (closed AABB overlap on both axes,
+    pieces of different bodies, both taking part, at least one dynamic), found by a sweep
+    along x; the per-pair test is ``collision._vertices_vs_edges`` in both directions.
+    ``depth < 0`` means the default per pair (``depth_fraction`` x the smaller piece width).
+    Returns unordered (vertex, edge, gap, edge_param) and the number of candidate pairs."""
+    n_p = piece_body.shape[0]
+    ids = np.empty(n_p, np.int64)
+    n_t = 0
+    for p in range(n_p):
+        if take[p]:
+            ids[n_t] = p
+            n_t += 1
+    ids = ids[:n_t]
+    key = np.empty(n_t)
+    for q in range(n_t):
+        key[q] = lo[ids[q], 0]
+    order = ids[_argsort(key)]
+    cap = 64
+    out_v = np.empty(cap, np.int64)
+    out_e = np.empty(cap, np.int64)
+    out_g = np.empty(cap)
+    out_t = np.empty(cap)
+    n_out = 0
+    n_pairs = 0
+    for ii in range(n_t):
+        p = order[ii]
+        reach = hi[p, 0] + bp_margin
+        for jj in range(ii + 1, n_t):
+            q = order[jj]
+            if lo[q, 0] > reach:
+                break
+            if piece_body[p] == piece_body[q] or not (dyn[p] or dyn[q]):
+                continue
+            if not (lo[p, 1] <= hi[q, 1] + bp_margin and lo[q, 1] <= hi[p, 1] + bp_margin):
+                continue
+            if not (lo[q, 0] <= hi[p, 0] + bp_margin and lo[p, 0] <= hi[q, 0] + bp_margin):
+                continue
+            n_pairs += 1
+            a, b = min(p, q), max(p, q)
+            a0, a1 = piece_start[a], piece_start[a + 1]
+            b0, b1 = piece_start[b], piece_start[b + 1]
+            need = n_out + (a1 - a0) + (b1 - b0)
+            if need > cap:
+                while need > cap:
+                    cap *= 2
+                nv = np.empty(cap, np.int64)
+                ne = np.empty(cap, np.int64)
+                ng = np.empty(cap)
+                nt = np.empty(cap)
+                for q in range(n_out):
+                    nv[q], ne[q], ng[q], nt[q] = out_v[q], out_e[q], out_g[q], out_t[q]
+                out_v, out_e, out_g, out_t = nv, ne, ng, nt
+            if depth < 0.0:
+                dp = depth_fraction * min(piece_width[a], piece_width[b])
+            else:
+                dp = depth
+            tie = tie_rel * (coord[piece_body[a]] + coord[piece_body[b]] + radius[a]
+                             + radius[b])
+            n_out = _vertex_edge(a0, a1, b0, b1, w, nw, active, internal, nxt, prv, elen,
+                                 margin, dp, tie, param_tol, angle_tol, out_v, out_e, out_g,
+                                 out_t, n_out)
+            n_out = _vertex_edge(b0, b1, a0, a1, w, nw, active, internal, nxt, prv, elen,
+                                 margin, dp, tie, param_tol, angle_tol, out_v, out_e, out_g,
+                                 out_t, n_out)
+    return out_v[:n_out], out_e[:n_out], out_g[:n_out], out_t[:n_out], n_pairs
+
+
+@jit
+def clean_contacts(vert, edge, gap, t, cover_start, cover_lo, cover_hi, nxt, canon, vbody,
+                   nw, n_vertices, n_bodies, param_tol, angle_tol):
+    """The clean-up of ``collision.find_contacts`` after the narrow phase, same results:
+    ``_not_internal`` and ``_vertex_vertex_keep`` on the raw contacts, ``_merge_duplicates``
+    on the survivors, then the order by (min body, max body, piece_a, vertex, piece_b, edge)
+    (pieces are numbered in vertex order, so vertex and edge imply the pieces). Returns the
+    indices of the kept contacts in that order."""
+    k = vert.shape[0]
+    keep = np.ones(k, np.bool_)
+    # contacts on internal portions of compound-body edges
+    for i in range(k):
+        e = edge[i]
+        tc = min(max(t[i], 0.0), 1.0)
+        for q in range(cover_start[e], cover_start[e + 1]):
+            lo, hi = cover_lo[q], cover_hi[q]
+            if (((tc > lo + param_tol) or (lo <= param_tol))
+                    and ((tc < hi - param_tol) or (hi >= 1.0 - param_tol))):
+                keep[i] = False
+    # vertex on vertex: keep the contact whose edge belongs to the lower-numbered body
+    end = -np.ones(k, np.int64)
+    n_cand = 0
+    for i in range(k):
+        if abs(t[i]) <= param_tol:
+            end[i] = edge[i]
+        elif abs(t[i] - 1.0) <= param_tol:
+            end[i] = nxt[edge[i]]
+        if end[i] >= 0:
+            n_cand += 1
+    if n_cand >= 2:
+        rev = np.empty(n_cand, np.int64)
+        q = 0
+        for i in range(k):
+            if end[i] >= 0:
+                rev[q] = canon[vert[i]] * n_vertices + canon[end[i]]
+                q += 1
+        rev = rev[_argsort(rev)]
+        for i in range(k):
+            if end[i] >= 0 and vbody[edge[i]] > vbody[vert[i]]:
+                key = canon[end[i]] * n_vertices + canon[vert[i]]
+                lo_, hi_ = 0, n_cand          # binary search: first rev >= key
+                while lo_ < hi_:
+                    mid = (lo_ + hi_) // 2
+                    if rev[mid] < key:
+                        lo_ = mid + 1
+                    else:
+                        hi_ = mid
+                if lo_ < n_cand and rev[lo_] == key:
+                    keep[i] = False
+    idx = _where(keep)
+    n = idx.shape[0]
+    # duplicates: one canonical vertex against parallel edges of one body
+    if n >= 2:
+        gkey = np.empty(n, np.int64)
+        for q in range(n):
+            i = idx[q]
+            gkey[q] = ((vbody[vert[i]] * n_vertices + canon[vert[i]]) * n_bodies
+                       + vbody[edge[i]])
+        o = _argsort(gkey)
+        s0 = 0
+        while s0 < n:
+            s1 = s0 + 1
+            while s1 < n and gkey[o[s1]] == gkey[o[s0]]:
+                s1 += 1
+            if s1 - s0 >= 2:
+                # members by (gap, vertex, edge), then keep greedily
+                mem = idx[o[s0:s1]].copy()
+                for u in range(1, mem.shape[0]):
+                    v = mem[u]
+                    p = u - 1
+                    while p >= 0 and (gap[mem[p]] > gap[v] or (gap[mem[p]] == gap[v] and (
+                            vert[mem[p]] > vert[v] or (vert[mem[p]] == vert[v]
+                                                       and edge[mem[p]] > edge[v])))):
+                        mem[p + 1] = mem[p]
+                        p -= 1
+                    mem[p + 1] = v
+                kept = np.empty(mem.shape[0], np.int64)
+                nk = 0
+                for u in range(mem.shape[0]):
+                    ci = mem[u]
+                    nx, ny = nw[edge[ci], 0], nw[edge[ci], 1]
+                    dup = False
+                    for z in range(nk):
+                        mx, my = nw[edge[kept[z]], 0], nw[edge[kept[z]], 1]
+                        if nx * mx + ny * my > 0 and abs(nx * my - ny * mx) <= angle_tol:
+                            dup = True
+                            break
+                    if dup:
+                        keep[ci] = False
+                    else:
+                        kept[nk] = ci
+                        nk += 1
+            s0 = s1
+        idx = _where(keep)
+        n = idx.shape[0]
+    # final order
+    k1 = np.empty(n, np.int64)
+    k2 = np.empty(n, np.int64)
+    for q in range(n):
+        i = idx[q]
+        ba, bb = vbody[vert[i]], vbody[edge[i]]
+        k1[q] = min(ba, bb) * n_bodies + max(ba, bb)
+        k2[q] = vert[i] * n_vertices + edge[i]
+    o2 = _argsort(k2)
+    o1 = _argsort(k1[o2])
+    return idx[o2[o1]]

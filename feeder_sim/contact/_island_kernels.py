@@ -1,0 +1,717 @@
+"""Compiled stages of a time step's contact work: islands, contact rows, the small islands'
+exact solve (Baraff-Dantzig, :mod:`._lcp_kernels`) and the large islands' projected
+Gauss-Seidel, impulses applied to velocities, and the state updates around them.
+
+Who calls what: ``dynamics.islands`` and ``TimeStepper`` -> ``island_groups``; ``TimeStepper``
+-> ``drift``, ``speed_bounds``, ``contact_rows``, ``solve_small`` (also the position
+projection's normal-row problems, rather than a kernel of its own that would compile
+``dantzig`` a second time), ``solve_pgs``, ``apply_impulses``, ``feature_gaps``. Each kernel
+reproduces the numpy code in :mod:`.dynamics` / ``time_stepping`` it replaces with the same
+arithmetic where that code is the reference (``test/test_pile.py`` holds them together).
+
+Compile time: about 28 s cold on a 2-core machine for what a single-box time-stepping run
+needs, later runs load machine code from ``__pycache__`` in ~0.5 s. The code avoids numba's
+library sorts, ``lstsq``, ``@`` and slice assignment, and is kept flat, for compile time.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from feeder_sim._jit import inner, jit
+from feeder_sim.contact._lcp_kernels import _affine, _dense_residual, dantzig
+
+
+@inner
+def _find(parent: np.ndarray, i: int) -> int:
+    while parent[i] != i:
+        parent[i] = parent[parent[i]]
+        i = parent[i]
+    return i
+
+
+@jit
+def island_groups(n_bodies, dynamic, a, b):
+    """Islands of dynamic bodies joined by contacts (static / kinematic bodies never join).
+
+    Returns ``(order, starts, bodies, body_starts)``: island i owns the contacts
+    ``order[starts[i]:starts[i+1]]`` (ascending) and the dynamic bodies
+    ``bodies[body_starts[i]:body_starts[i+1]]`` (ascending); islands are ordered by their
+    smallest body index.
+    """
+    k = a.shape[0]
+    parent = np.arange(n_bodies)
+    for c in range(k):
+        i, j = a[c], b[c]
+        if dynamic[i] and dynamic[j]:
+            ri, rj = _find(parent, i), _find(parent, j)
+            if ri != rj:
+                if ri < rj:
+                    parent[rj] = ri
+                else:
+                    parent[ri] = rj
+    # island number of every root, ascending root order
+    root_of = np.empty(k, np.int64)
+    used = np.zeros(n_bodies, np.bool_)
+    for c in range(k):
+        owner = a[c] if dynamic[a[c]] else b[c]
+        r = _find(parent, owner)
+        root_of[c] = r
+        used[r] = True
+    island_of_root = -np.ones(n_bodies, np.int64)
+    n_isl = 0
+    for r in range(n_bodies):
+        if used[r]:
+            island_of_root[r] = n_isl
+            n_isl += 1
+    # contacts: counting sort by island, stable
+    starts = np.zeros(n_isl + 1, np.int64)
+    for c in range(k):
+        starts[island_of_root[root_of[c]] + 1] += 1
+    for i in range(n_isl):
+        starts[i + 1] += starts[i]
+    fill = starts[:-1].copy()
+    order = np.empty(k, np.int64)
+    for c in range(k):
+        i = island_of_root[root_of[c]]
+        order[fill[i]] = c
+        fill[i] += 1
+    # bodies: dynamic bodies that appear in a contact, by island then index
+    member = np.zeros(n_bodies, np.bool_)
+    for c in range(k):
+        if dynamic[a[c]]:
+            member[a[c]] = True
+        if dynamic[b[c]]:
+            member[b[c]] = True
+    body_starts = np.zeros(n_isl + 1, np.int64)
+    for i in range(n_bodies):
+        if member[i]:
+            body_starts[island_of_root[_find(parent, i)] + 1] += 1
+    for i in range(n_isl):
+        body_starts[i + 1] += body_starts[i]
+    bfill = body_starts[:-1].copy()
+    bodies = np.empty(body_starts[n_isl], np.int64)
+    for i in range(n_bodies):
+        if member[i]:
+            isl = island_of_root[_find(parent, i)]
+            bodies[bfill[isl]] = i
+            bfill[isl] += 1
+    return order, starts, bodies, body_starts
+
+
+@inner
+def _rows(a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia):
+    """Per-row Jacobian blocks of contacts: rows [N_0..N_{c-1}, T_0..T_{c-1}].
+
+    ``ja[i] = (d, r_a x d)`` acts on body a, ``jb[i] = -(d, r_b x d)`` on body b; ``ma`` /
+    ``mb`` are the same blocks multiplied by the inverse mass (so ``dv = M^-1 J^T x``)."""
+    c = a.shape[0]
+    m = 2 * c
+    ja = np.empty((m, 3))
+    jb = np.empty((m, 3))
+    ma = np.empty((m, 3))
+    mb = np.empty((m, 3))
+    for i in range(m):
+        k = i if i < c else i - c
+        if i < c:
+            dx, dy = normal[k, 0], normal[k, 1]
+        else:
+            dx, dy = tangent[k, 0], tangent[k, 1]
+        ia, ib = a[k], b[k]
+        ja[i, 0] = dx
+        ja[i, 1] = dy
+        ja[i, 2] = r_a[k, 0] * dy - r_a[k, 1] * dx
+        jb[i, 0] = -dx
+        jb[i, 1] = -dy
+        jb[i, 2] = -(r_b[k, 0] * dy - r_b[k, 1] * dx)
+        for q in range(2):
+            ma[i, q] = inv_mass[ia] * ja[i, q]
+            mb[i, q] = inv_mass[ib] * jb[i, q]
+        ma[i, 2] = inv_inertia[ia] * ja[i, 2]
+        mb[i, 2] = inv_inertia[ib] * jb[i, 2]
+    return ja, jb, ma, mb
+
+
+@jit
+def apply_impulses(dv, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, p_n, p_t):
+    """``dv[body] += M^-1 J^T p`` for contact impulses (p_n, p_t); dv is (n_bodies, 3).
+
+    Summed like ``IslandJacobian.velocity_change`` (``inv_mass * (J.T @ impulse)``): per body
+    and component, the normal rows in contact order, then the tangent rows, then one
+    multiplication by the inverse mass, so the velocities match the numpy path."""
+    n = dv.shape[0]
+    s = np.zeros((n, 3))
+    for rows in range(2):
+        d = normal if rows == 0 else tangent
+        p = p_n if rows == 0 else p_t
+        for k in range(a.shape[0]):
+            dx, dy = d[k, 0], d[k, 1]
+            ia, ib = a[k], b[k]
+            s[ia, 0] += dx * p[k]
+            s[ia, 1] += dy * p[k]
+            s[ia, 2] += (r_a[k, 0] * dy - r_a[k, 1] * dx) * p[k]
+            s[ib, 0] += -dx * p[k]
+            s[ib, 1] += -dy * p[k]
+            s[ib, 2] += -(r_b[k, 0] * dy - r_b[k, 1] * dx) * p[k]
+    for i in range(n):
+        dv[i, 0] += inv_mass[i] * s[i, 0]
+        dv[i, 1] += inv_mass[i] * s[i, 1]
+        dv[i, 2] += inv_inertia[i] * s[i, 2]
+
+
+@inner
+def _row_w(i, k, a, b, ja, jb, dv, bias):
+    ia, ib = a[k], b[k]
+    return (bias + ja[i, 0] * dv[ia, 0] + ja[i, 1] * dv[ia, 1] + ja[i, 2] * dv[ia, 2]
+            + jb[i, 0] * dv[ib, 0] + jb[i, 1] * dv[ib, 1] + jb[i, 2] * dv[ib, 2])
+
+
+@inner
+def _row_add(i, k, a, b, ma, mb, dv, delta):
+    ia, ib = a[k], b[k]
+    dv[ia, 0] += ma[i, 0] * delta
+    dv[ia, 1] += ma[i, 1] * delta
+    dv[ia, 2] += ma[i, 2] * delta
+    dv[ib, 0] += mb[i, 0] * delta
+    dv[ib, 1] += mb[i, 1] * delta
+    dv[ib, 2] += mb[i, 2] * delta
+
+
+@inner
+def _island_residual(lo_c, hi_c, a, b, ja, jb, dv, b_n, b_t, box, mu_lo, mu_hi, x_n, x_t,
+                     diag, c, w_t_out):
+    """Two measures of how far one island's impulses are from solving its LCP.
+
+    * ``lcp.residual`` of the assembled problem (scale-free; the assembled matrix is
+      symmetric positive semi-definite, so ``max|A|`` is its largest diagonal entry);
+    * the natural-map residual in m/s: the largest velocity change a further projected
+      Gauss-Seidel step would make, ``A_ii |x_i - proj(x_i - w_i / A_ii)|``. Unlike the
+      former it does not scale with the largest ``|b|`` of the island (speculative contacts
+      far apart have b ~ gap / h ~ 1 m/s), so it bounds the velocity error of every contact.
+
+    Also writes the tangential w (new tangential velocity) of every contact to ``w_t_out``.
+    Returns (lcp residual, velocity residual)."""
+    amax = 0.0
+    bmax = 0.0
+    xmax = 0.0
+    for k in range(lo_c, hi_c):
+        amax = max(amax, diag[k])
+        bmax = max(bmax, abs(b_n[k]))
+        xmax = max(xmax, abs(x_n[k]))
+        if box[k]:
+            amax = max(amax, diag[k + c])
+            bmax = max(bmax, abs(b_t[k]))
+            xmax = max(xmax, abs(x_t[k]))
+    if not (xmax - xmax == 0.0):
+        return np.inf, np.inf
+    s_w = max(1e-300, max(bmax, amax * xmax))
+    s_x = s_w / amax if amax > 0.0 else max(1e-300, xmax)
+    r = 0.0
+    rv = 0.0
+    for k in range(lo_c, hi_c):
+        w = _row_w(k, k, a, b, ja, jb, dv, b_n[k])
+        x = x_n[k]
+        r = max(r, max(-x / s_x, max(-w / s_w, abs(x * w) / (s_x * s_w))))
+        if diag[k] > 0.0:
+            rv = max(rv, abs(x - max(x - w / diag[k], 0.0)) * diag[k])
+        wt = _row_w(k + c, k, a, b, ja, jb, dv, b_t[k])
+        w_t_out[k] = wt
+        if box[k]:
+            xj = max(x, 0.0)
+            xk = x_t[k]
+            dl = xk + mu_lo[k] * xj
+            dh = mu_hi[k] * xj - xk
+            away = wt * max(dl, 0.0) if wt > 0.0 else -wt * max(dh, 0.0)
+            r = max(r, max(-dl / s_x, max(-dh / s_x, away / (s_x * s_w))))
+            if diag[k + c] > 0.0:
+                y = min(max(xk - wt / diag[k + c], -mu_lo[k] * xj), mu_hi[k] * xj)
+                rv = max(rv, abs(xk - y) * diag[k + c])
+    return max(r, 0.0), rv
+
+
+@jit
+def contact_velocities(a, b, normal, r_a, r_b, velocity, omega):
+    """Normal and tangential relative velocity of every contact (``dynamics.relative_velocity``
+    with the same operation order, so the same bits)."""
+    k = a.shape[0]
+    v_n = np.empty(k)
+    v_t = np.empty(k)
+    for i in range(k):
+        ia, ib = a[i], b[i]
+        pax = velocity[ia, 0] + omega[ia] * -r_a[i, 1]
+        pay = velocity[ia, 1] + omega[ia] * r_a[i, 0]
+        pbx = velocity[ib, 0] + omega[ib] * -r_b[i, 1]
+        pby = velocity[ib, 1] + omega[ib] * r_b[i, 0]
+        rx, ry = pax - pbx, pay - pby
+        nx, ny = normal[i, 0], normal[i, 1]
+        v_n[i] = rx * nx + ry * ny
+        v_t[i] = rx * -ny + ry * nx
+    return v_n, v_t
+
+
+@jit
+def drift(idx, position, angle, velocity, omega, half_h, out_position, out_angle):
+    """``out = position + half_h * velocity`` (and the same for the angles) for the bodies
+    ``idx``: a half step of Moreau's midpoint scheme, with the bits of numpy's
+    ``position[idx] + 0.5 * h * velocity[idx]`` (``half_h = 0.5 * h``)."""
+    for q in range(idx.shape[0]):
+        i = idx[q]
+        out_position[i, 0] = position[i, 0] + half_h * velocity[i, 0]
+        out_position[i, 1] = position[i, 1] + half_h * velocity[i, 1]
+        out_angle[i] = angle[i] + half_h * omega[i]
+
+
+@jit
+def speed_bounds(velocity, omega, radius, dynamic):
+    """The largest ``|v| + |omega| r`` (speed bound of a body's points) of the dynamic bodies
+    and of the others, the largest ``omega^2 r`` of the dynamic bodies, and a bound on the
+    speed at which points of two dynamic bodies close on each other (twice the largest
+    ``|v - c| + |omega| r``, c the centre of the dynamic velocities' bounding box): the
+    reductions of ``TimeStepper.margin`` / ``_slip_tol`` (NaN propagates)."""
+    v_dyn = 0.0
+    v_other = 0.0
+    spin = 0.0
+    lo_x = lo_y = np.inf
+    hi_x = hi_y = -np.inf
+    for i in range(velocity.shape[0]):
+        s = (np.sqrt(velocity[i, 0] * velocity[i, 0] + velocity[i, 1] * velocity[i, 1])
+             + abs(omega[i]) * radius[i])
+        if dynamic[i]:
+            v_dyn = s if s > v_dyn or s != s else v_dyn
+            q = omega[i] * omega[i] * radius[i]
+            spin = q if q > spin or q != q else spin
+            lo_x, hi_x = min(lo_x, velocity[i, 0]), max(hi_x, velocity[i, 0])
+            lo_y, hi_y = min(lo_y, velocity[i, 1]), max(hi_y, velocity[i, 1])
+        else:
+            v_other = s if s > v_other or s != s else v_other
+    cx, cy = 0.5 * (lo_x + hi_x), 0.5 * (lo_y + hi_y)
+    spread = 0.0
+    for i in range(velocity.shape[0]):
+        if dynamic[i]:
+            s = (np.sqrt((velocity[i, 0] - cx) ** 2 + (velocity[i, 1] - cy) ** 2)
+                 + abs(omega[i]) * radius[i])
+            spread = s if s > spread or s != s else spread
+    return v_dyn, v_other, spin, 2.0 * spread
+
+
+@jit
+def contact_rows(a, b, point, normal, gap, order, starts, position, v_end, w_end, v_pre, w_pre,
+                 mu_s_body, mu_d_body, e_body, h, touch, max_rows, push_out, push_max, slop,
+                 collide_speed, slip_tol, friction_impulse, piece_a, piece_b, piece_width,
+                 spec_depth, reach):
+    """The per-contact part of ``TimeStepper._contacts`` in one pass (the numpy expressions it
+    replaces are quoted; same operations in the same order, so the same bits).
+
+    Contacts come as found at the midpoint configuration (``position``); ``order`` / ``starts``
+    are their islands (``island_groups``). A contact is kept when its island is a pile
+    (``2 * size > max_rows``), it touches (``gap <= touch``) or it would close its gap by the
+    end of the step (``gap + 0.5 * h * v_N_free <= touch``): a Newton row. A contact of a small
+    island kept for none of these is speculative when ``gap + allow <= reach`` (``allow`` =
+    ``spec_depth`` x the smaller width of its two pieces, ``reach`` the distance a point can
+    travel in the step): its row ``v'_N + (gap + allow) / h >= 0`` lets it close by at most
+    ``gap + allow`` before the next midpoint. Returns the kept indices, then per
+    kept contact: ``dynamics.contact_set``'s tangent, r_a, r_b, mu_static, mu_dynamic,
+    restitution; the free end-of-step velocities v_N, v_T (``v_end`` / ``w_end``); the
+    pre-step slip v_T (``v_pre`` / ``w_pre``); pile, colliding, the normal rows' b, then
+    ``dynamics.friction_rows``' BOX flag, mu_lo, mu_hi; and the smallest kept gap."""
+    n = a.shape[0]
+    size = np.empty(n, np.int64)
+    for i in range(starts.shape[0] - 1):
+        for q in range(starts[i], starts[i + 1]):
+            size[order[q]] = starts[i + 1] - starts[i]
+    r_a = np.empty((n, 2))
+    r_b = np.empty((n, 2))
+    vn_free = np.empty(n)
+    vt_free = np.empty(n)
+    keep = np.empty(n, np.int64)
+    allow = np.zeros(n)
+    spec = np.zeros(n, np.bool_)
+    m = 0
+    for i in range(n):
+        ia, ib = a[i], b[i]
+        for q in range(2):
+            r_a[i, q] = point[i, q] - position[ia, q]
+            r_b[i, q] = point[i, q] - position[ib, q]
+        # contact_velocities at the end-of-step free velocities
+        pax = v_end[ia, 0] + w_end[ia] * -r_a[i, 1]
+        pay = v_end[ia, 1] + w_end[ia] * r_a[i, 0]
+        pbx = v_end[ib, 0] + w_end[ib] * -r_b[i, 1]
+        pby = v_end[ib, 1] + w_end[ib] * r_b[i, 0]
+        rx, ry = pax - pbx, pay - pby
+        nx, ny = normal[i, 0], normal[i, 1]
+        vn_free[i] = rx * nx + ry * ny
+        vt_free[i] = rx * -ny + ry * nx
+        if (2 * size[i] > max_rows or gap[i] <= touch
+                or gap[i] + 0.5 * h * vn_free[i] <= touch):
+            keep[m] = i
+            m += 1
+        else:
+            wa, wb = piece_width[piece_a[i]], piece_width[piece_b[i]]
+            d = spec_depth * (wa if wa < wb else wb)
+            if gap[i] + d <= reach:
+                allow[i] = d
+                spec[i] = True
+                keep[m] = i
+                m += 1
+    keep = keep[:m]
+    tangent = np.empty((m, 2))
+    ra = np.empty((m, 2))
+    rb = np.empty((m, 2))
+    mu_s = np.empty(m)
+    mu_d = np.empty(m)
+    rest = np.empty(m)
+    v_n = np.empty(m)
+    v_t = np.empty(m)
+    slip = np.empty(m)
+    pile = np.empty(m, np.bool_)
+    colliding = np.empty(m, np.bool_)
+    b_n = np.empty(m)
+    box = np.empty(m, np.bool_)
+    mu_lo = np.empty(m)
+    mu_hi = np.empty(m)
+    gap_min = np.inf
+    for q in range(m):
+        i = keep[q]
+        ia, ib = a[i], b[i]
+        nx, ny = normal[i, 0], normal[i, 1]
+        tangent[q, 0] = -ny
+        tangent[q, 1] = nx
+        for j in range(2):
+            ra[q, j] = r_a[i, j]
+            rb[q, j] = r_b[i, j]
+        # world.mix: friction the geometric mean, restitution the larger value
+        x, y = mu_s_body[ia], mu_s_body[ib]
+        mu_s[q] = x if x == y else np.sqrt(x * y)
+        x, y = mu_d_body[ia], mu_d_body[ib]
+        mu_d[q] = x if x == y else np.sqrt(x * y)
+        x, y = e_body[ia], e_body[ib]
+        rest[q] = x if x == y else max(x, y)
+        v_n[q] = vn_free[i]
+        v_t[q] = vt_free[i]
+        # contact_velocities at the pre-step velocities
+        pax = v_pre[ia, 0] + w_pre[ia] * -r_a[i, 1]
+        pay = v_pre[ia, 1] + w_pre[ia] * r_a[i, 0]
+        pbx = v_pre[ib, 0] + w_pre[ib] * -r_b[i, 1]
+        pby = v_pre[ib, 1] + w_pre[ib] * r_b[i, 0]
+        rx, ry = pax - pbx, pay - pby
+        vn_pre = rx * nx + ry * ny
+        vt_pre = rx * -ny + ry * nx
+        slip[q] = vt_pre
+        g = gap[i]
+        gap_min = min(gap_min, g)
+        pl = 2 * size[i] > max_rows
+        pile[q] = pl
+        touching = g <= touch
+        # colliding = (touching | ~pile) & (v_n_pre < -2 g h)
+        colliding[q] = (touching or not pl) and vn_pre < collide_speed
+        # newton = v_n_free + e min(v_n_pre, 0);
+        # push = min(push_out max(-gap - slop, 0) 2 / h, push_max).
+        # np.minimum / np.maximum return the second operand on a tie (the sign of a zero) and
+        # propagate NaN; numba's min / max return the first, hence the explicit forms.
+        newton = vn_free[i] + rest[q] * (vn_pre if vn_pre < 0.0 or vn_pre != vn_pre else 0.0)
+        if not pl:
+            b_n[q] = vn_free[i] + (g + allow[i]) / h if spec[i] else newton
+        elif touching:
+            depth = -g - slop
+            depth = depth if depth > 0.0 or depth != depth else 0.0
+            push = push_out * depth * 2.0 / h
+            b_n[q] = newton - (push if push < push_max or push != push else push_max)
+        else:
+            b_n[q] = vn_free[i] + 2.0 * g / h
+        # friction_rows (Kawachi): the pre-step slip picks static or one-sided dynamic
+        sliding = abs(vt_pre) > slip_tol
+        mu = mu_d[q] if sliding else mu_s[q]
+        box[q] = mu > 0.0 and (friction_impulse or not colliding[q])
+        mu_lo[q] = 0.0 if sliding and vt_pre < 0 else mu
+        mu_hi[q] = 0.0 if sliding and vt_pre > 0 else mu
+    return (keep, tangent, ra, rb, mu_s, mu_d, rest, v_n, v_t, slip, pile, colliding, b_n, box,
+            mu_lo, mu_hi, gap_min)
+
+
+@jit
+def feature_gaps(idx, vertex, edge, vertices, normals, vertex_body, position, cos, sin):
+    """Gaps of the vertex-edge features of contacts ``idx`` at another configuration:
+    ``collision.evaluate_gaps`` (its gap) with the same arithmetic, so the same bits; ``cos`` /
+    ``sin`` of the body angles are numpy's. Used by the position projection, which needs the
+    gaps of a few contacts, where evaluate_gaps' numpy calls cost ~70 us whatever their number."""
+    out = np.empty(idx.shape[0])
+    for q in range(idx.shape[0]):
+        i = idx[q]
+        v, e = vertex[i], edge[i]
+        ba, bb = vertex_body[v], vertex_body[e]
+        c, s = cos[ba], sin[ba]
+        x, y = vertices[v, 0], vertices[v, 1]
+        px = position[ba, 0] + (c * x - s * y)
+        py = position[ba, 1] + (s * x + c * y)
+        c, s = cos[bb], sin[bb]
+        x, y = vertices[e, 0], vertices[e, 1]
+        qx = position[bb, 0] + (c * x - s * y)
+        qy = position[bb, 1] + (s * x + c * y)
+        x, y = normals[e, 0], normals[e, 1]
+        out[q] = (c * x - s * y) * (px - qx) + (s * x + c * y) * (py - qy)
+    return out
+
+
+# Columns of a contact's record in the projected Gauss-Seidel (``_pgs_records``): the Jacobian
+# blocks of its normal row (ja, jb: 0-5) and their M^-1 multiples (ma, mb: 6-11), the same for
+# its friction row (12-23), then b_N, b_T, the SOR steps, the diagonal entries A_ii and the
+# friction bounds.
+_R_BN, _R_BT, _R_SN, _R_ST, _R_DN, _R_DT, _R_LO, _R_HI = range(24, 32)
+_R_WIDTH = 32
+
+
+@inner
+def _pgs_records(a, b, ja, jb, ma, mb, step, diag, b_n, b_t, mu_lo, mu_hi, inv_mass,
+                 inv_inertia):
+    """Everything a sweep reads about contact k in row k of one (c, 32) array, so that a sweep
+    streams through memory once instead of gathering from a dozen arrays, and per contact
+    whether its vertex / edge body is fixed (zero inverse mass and inertia)."""
+    c = a.shape[0]
+    R = np.empty((c, _R_WIDTH))
+    fixed_a = np.empty(c, np.bool_)
+    fixed_b = np.empty(c, np.bool_)
+    for k in range(c):
+        t = k + c
+        for q in range(3):
+            R[k, q] = ja[k, q]
+            R[k, 3 + q] = jb[k, q]
+            R[k, 6 + q] = ma[k, q]
+            R[k, 9 + q] = mb[k, q]
+            R[k, 12 + q] = ja[t, q]
+            R[k, 15 + q] = jb[t, q]
+            R[k, 18 + q] = ma[t, q]
+            R[k, 21 + q] = mb[t, q]
+        R[k, _R_BN] = b_n[k]
+        R[k, _R_BT] = b_t[k]
+        R[k, _R_SN] = step[k]
+        R[k, _R_ST] = step[t]
+        R[k, _R_DN] = diag[k]
+        R[k, _R_DT] = diag[t]
+        R[k, _R_LO] = mu_lo[k]
+        R[k, _R_HI] = mu_hi[k]
+        fixed_a[k] = inv_mass[a[k]] == 0.0 and inv_inertia[a[k]] == 0.0
+        fixed_b[k] = inv_mass[b[k]] == 0.0 and inv_inertia[b[k]] == 0.0
+    return R, fixed_a, fixed_b
+
+
+@inner(inline='always')
+def _push(dv, R, k, ia, ib, col, d):
+    """Add the velocity change of an impulse change ``d`` on row ``k`` to both its bodies
+    (``R[k, col:col + 6]`` hold M^-1 J^T for body a, then body b)."""
+    dv[ia, 0] += R[k, col] * d
+    dv[ia, 1] += R[k, col + 1] * d
+    dv[ia, 2] += R[k, col + 2] * d
+    dv[ib, 0] += R[k, col + 3] * d
+    dv[ib, 1] += R[k, col + 4] * d
+    dv[ib, 2] += R[k, col + 5] * d
+
+
+@inner
+def _pgs_island(lo_c, hi_c, a, b, R, fixed_a, fixed_b, dv, box, x_n, x_t, sweeps):
+    """``sweeps`` projected Gauss-Seidel sweeps over contacts lo_c..hi_c-1 in order, each
+    normal followed by its friction row, whose bounds use the normal just updated (velocity
+    form: ``dv`` holds M^-1 J^T x of the island's bodies; contact data in ``R``, see
+    ``_pgs_records``; steps are the SOR factor / A_ii, 0 for a row without a positive pivot).
+    Always forward: alternating directions can cycle between two fixed points when contacts
+    are redundant (two corners of a box edge give identical friction rows). The row updates
+    are written out (no helper calls) because this is the innermost loop. Returns the largest
+    velocity change ``A_ii |dx_i|`` of the last sweep (m/s).
+
+    A row's w is ``b + ja . dv_a + jb . dv_b`` summed left to right. The sweep is bound by the
+    latency of that chain of additions, so the three terms of a fixed body (the track, a
+    wall) are left out: its dv stays exactly +0.0 (it only ever receives 0 * d), its terms are
+    +-0.0, and adding them can only turn a w of -0.0 into +0.0, which changes no impulse (the
+    update is skipped when d is zero) nor any other bit of the answer."""
+    change = 0.0
+    for _ in range(sweeps):
+        change = 0.0
+        for k in range(lo_c, hi_c):
+            ia, ib = a[k], b[k]
+            w = R[k, _R_BN]
+            if not fixed_a[k]:
+                w = w + R[k, 0] * dv[ia, 0] + R[k, 1] * dv[ia, 1] + R[k, 2] * dv[ia, 2]
+            if not fixed_b[k]:
+                w = w + R[k, 3] * dv[ib, 0] + R[k, 4] * dv[ib, 1] + R[k, 5] * dv[ib, 2]
+            xo = x_n[k]
+            xn = xo - R[k, _R_SN] * w
+            if xn < 0.0:
+                xn = 0.0
+            d = xn - xo
+            if d != 0.0:
+                change = max(change, abs(d) * R[k, _R_DN])
+                _push(dv, R, k, ia, ib, 6, d)
+                x_n[k] = xn
+            # (xn now equals x_n[k] bit for bit: x_n never holds -0.0)
+            if xn == 0.0:
+                # an open contact carries no friction: no need to evaluate its row
+                d = -x_t[k]
+                if d != 0.0:
+                    change = max(change, abs(d) * R[k, _R_DT])
+                    _push(dv, R, k, ia, ib, 18, d)
+                    x_t[k] = 0.0
+            elif box[k]:
+                w = R[k, _R_BT]
+                if not fixed_a[k]:
+                    w = w + R[k, 12] * dv[ia, 0] + R[k, 13] * dv[ia, 1] + R[k, 14] * dv[ia, 2]
+                if not fixed_b[k]:
+                    w = w + R[k, 15] * dv[ib, 0] + R[k, 16] * dv[ib, 1] + R[k, 17] * dv[ib, 2]
+                xo = x_t[k]
+                xt = xo - R[k, _R_ST] * w
+                xt = min(max(xt, -R[k, _R_LO] * xn), R[k, _R_HI] * xn)
+                d = xt - xo
+                if d != 0.0:
+                    change = max(change, abs(d) * R[k, _R_DT])
+                    _push(dv, R, k, ia, ib, 18, d)
+                    x_t[k] = xt
+    return change
+
+
+@inner
+def _island_dense(lo_c, hi_c, c, a, b, ja, jb, ma, mb, b_n, b_t, box, mu_lo, mu_hi):
+    """The assembled problem of contacts lo_c..hi_c-1 (``dynamics.assemble``'s layout: the
+    normals, then the friction rows of contacts with ``box``): A, b, normal_of, mu_lo, mu_hi,
+    and for each row its contact and whether it is a friction row."""
+    nc = hi_c - lo_c
+    m = nc
+    for k in range(lo_c, hi_c):
+        if box[k]:
+            m += 1
+    rc = np.empty(m, np.int64)
+    rf = np.zeros(m, np.bool_)
+    p = nc
+    for q in range(nc):
+        rc[q] = lo_c + q
+        if box[lo_c + q]:
+            rc[p] = lo_c + q
+            rf[p] = True
+            p += 1
+    A = np.empty((m, m))
+    bb = np.empty(m)
+    nof = -np.ones(m, np.int64)
+    lo = np.zeros(m)
+    hi = np.zeros(m)
+    for i in range(m):
+        k = rc[i]
+        gi = k + c if rf[i] else k
+        if rf[i]:
+            bb[i] = b_t[k]
+            nof[i] = k - lo_c
+            lo[i] = mu_lo[k]
+            hi[i] = mu_hi[k]
+        else:
+            bb[i] = b_n[k]
+        for j in range(i, m):
+            kj = rc[j]
+            gj = kj + c if rf[j] else kj
+            s = 0.0
+            if a[k] == a[kj]:
+                s += ma[gi, 0] * ja[gj, 0] + ma[gi, 1] * ja[gj, 1] + ma[gi, 2] * ja[gj, 2]
+            if a[k] == b[kj]:
+                s += ma[gi, 0] * jb[gj, 0] + ma[gi, 1] * jb[gj, 1] + ma[gi, 2] * jb[gj, 2]
+            if b[k] == a[kj]:
+                s += mb[gi, 0] * ja[gj, 0] + mb[gi, 1] * ja[gj, 1] + mb[gi, 2] * ja[gj, 2]
+            if b[k] == b[kj]:
+                s += mb[gi, 0] * jb[gj, 0] + mb[gi, 1] * jb[gj, 1] + mb[gi, 2] * jb[gj, 2]
+            A[i, j] = s
+            A[j, i] = s
+    return A, bb, nof, lo, hi, rc, rf
+
+
+@jit
+def solve_small(select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, b_n,
+                b_t, box, mu_lo, mu_hi, x_n, x_t, w_t):
+    """The islands with ``select`` (contacts grouped by ``starts``, CSR) by Baraff-Dantzig
+    (``dantzig``), from scratch.
+
+    An island's problem has its normal rows, then the friction rows of the contacts with
+    ``box[k]`` (bounds ``[-mu_lo x_N, mu_hi x_N]``; other contacts keep x_T = 0), exactly
+    ``dynamics.assemble``'s layout. Writes the impulses to ``x_n`` / ``x_t`` and the new
+    tangential velocity of contacts with a friction row to ``w_t``; returns per island the
+    residual (``lcp.residual``), the pivots and the Dantzig abort codes (pass, retry)."""
+    n_isl = starts.shape[0] - 1
+    c = a.shape[0]
+    ja, jb, ma, mb = _rows(a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia)
+    res = np.zeros(n_isl)
+    work = np.zeros(n_isl, np.int64)
+    codes = np.zeros((n_isl, 2), np.int64)
+    for isl in range(n_isl):
+        if not select[isl]:
+            continue
+        A, bb, nof, lo, hi, rc, rf = _island_dense(starts[isl], starts[isl + 1], c, a, b, ja,
+                                                   jb, ma, mb, b_n, b_t, box, mu_lo, mu_hi)
+        m = bb.shape[0]
+        x, piv, c1, c2 = dantzig(A, bb, nof, lo, hi, 50 * m + 50)
+        wv = _affine(A, x, bb)
+        res[isl] = _dense_residual(A, bb, x, wv, nof, lo, hi)
+        work[isl] = piv
+        codes[isl, 0], codes[isl, 1] = c1, c2
+        for k in range(starts[isl], starts[isl + 1]):
+            x_t[k] = 0.0
+        for i in range(m):
+            k = rc[i]
+            if rf[i]:
+                x_t[k] = x[i]
+                w_t[k] = wv[i]
+            else:
+                x_n[k] = x[i]
+    return res, work, codes
+
+
+@jit
+def solve_pgs(select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, b_n, b_t,
+              box, mu_lo, mu_hi, x_n, x_t, w_t, dv, tol, max_sweeps, check, omega):
+    """The islands with ``select`` by projected Gauss-Seidel in velocity form
+    (``_pgs_island``).
+
+    ``x_n`` / ``x_t`` hold the warm start (the previous step's impulses of the same
+    features, 0 for new ones) on entry and the answer on return; ``dv`` (n_bodies, 3) is
+    scratch and must be zero. Each island is swept until its velocity residual (m/s, see
+    ``_island_residual``, checked every ``check`` sweeps) is <= ``tol`` or ``max_sweeps``
+    is reached. Writes the new tangential velocities to ``w_t``; returns per island the
+    ``lcp.residual``, the velocity residual and the sweeps."""
+    c = a.shape[0]
+    n_isl = starts.shape[0] - 1
+    ja, jb, ma, mb = _rows(a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia)
+    diag = np.empty(2 * c)
+    for i in range(2 * c):
+        diag[i] = (ja[i, 0] * ma[i, 0] + ja[i, 1] * ma[i, 1] + ja[i, 2] * ma[i, 2]
+                   + jb[i, 0] * mb[i, 0] + jb[i, 1] * mb[i, 1] + jb[i, 2] * mb[i, 2])
+    step = np.zeros(2 * c)
+    for i in range(2 * c):
+        if diag[i] > 0.0:
+            step[i] = omega / diag[i]
+    R, fixed_a, fixed_b = _pgs_records(a, b, ja, jb, ma, mb, step, diag, b_n, b_t, mu_lo, mu_hi,
+                                       inv_mass, inv_inertia)
+    res = np.zeros(n_isl)
+    vres = np.zeros(n_isl)
+    work = np.zeros(n_isl, np.int64)
+    for isl in range(n_isl):
+        if not select[isl]:
+            continue
+        lo_c, hi_c = starts[isl], starts[isl + 1]
+        for k in range(lo_c, hi_c):
+            # project the warm start and accumulate its velocity change
+            if not (x_n[k] > 0.0):
+                x_n[k] = 0.0
+            if box[k]:
+                x_t[k] = min(max(x_t[k], -mu_lo[k] * x_n[k]), mu_hi[k] * x_n[k])
+            else:
+                x_t[k] = 0.0
+            _row_add(k, k, a, b, ma, mb, dv, x_n[k])
+            _row_add(k + c, k, a, b, ma, mb, dv, x_t[k])
+        # sweep until a sweep changes no velocity by more than tol, then confirm with the
+        # residual at the final point (the stopping test, recorded with lcp.residual)
+        r, rv = _island_residual(lo_c, hi_c, a, b, ja, jb, dv, b_n, b_t, box, mu_lo, mu_hi,
+                                 x_n, x_t, diag, c, w_t)
+        s = 0
+        while rv > tol and s < max_sweeps:
+            n = min(check, max_sweeps - s)
+            change = _pgs_island(lo_c, hi_c, a, b, R, fixed_a, fixed_b, dv, box, x_n, x_t, n)
+            s += n
+            if change <= tol or s >= max_sweeps:
+                r, rv = _island_residual(lo_c, hi_c, a, b, ja, jb, dv, b_n, b_t, box, mu_lo,
+                                         mu_hi, x_n, x_t, diag, c, w_t)
+        res[isl] = r
+        vres[isl] = rv
+        work[isl] = s
+    return res, vres, work
