@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from feeder_sim._jit import inner
+from feeder_sim._jit import inner, jit
 
 # ---------------------------------------------------------------------------------------------
 # island solvers: Dantzig for small islands, projected Gauss-Seidel for large ones
@@ -60,6 +60,17 @@ def _dense_residual(A, b, x, w, nof, lo, hi):
             r = max(r, max(-dl / s_x, max(-dh / s_x, away / (s_x * s_w))))
     return max(r, 0.0)
 
+
+
+@jit
+def lcp_residual(A, b, x, normal_of, lo, hi):
+    """:func:`feeder_sim.contact.lcp.residual` of ``x``: inf when ``A x + b`` is not finite."""
+    if b.shape[0] == 0:
+        return 0.0
+    w = A @ x + b
+    if not np.isfinite(w.sum()):
+        return np.inf
+    return _dense_residual(A, b, x, w, normal_of, lo, hi)
 
 # ---------------------------------------------------------------------------------------------
 # Baraff-Dantzig pivoting: a port of ``lcp._Dantzig`` to numba with the same sets, events,

@@ -29,6 +29,7 @@ import numpy as np
 
 from feeder_sim._jit import jit
 from feeder_sim.contact._lcp_kernels import dantzig as _dantzig
+from feeder_sim.contact._lcp_kernels import lcp_residual
 from feeder_sim.contact.candidates import world_point
 from feeder_sim.model.world import DRIVEN, FIXED
 
@@ -521,34 +522,6 @@ def contact_jacobian(normal, r_a, r_b, body_a, body_b, dynamic, inv_mass, inv_in
         J[k + i, c], J[k + i, c + 1], J[k + i, c + 2] = s * tx, s * ty, s * (rx * ty - ry * tx)
     W = (J * minv) @ J.T
     return True, J, minv, W
-
-
-@jit
-def lcp_residual(A, b, x, normal_of, lo, hi):
-    """The frictional LCP residual of :func:`feeder_sim.contact.lcp.residual` (same formula)."""
-    m = b.shape[0]
-    if m == 0:
-        return 0.0
-    w = A @ x + b
-    xmax = np.abs(x).max()
-    if not (np.isfinite(xmax) and np.isfinite(w.sum())):
-        return np.inf
-    amax = np.abs(A).max()
-    s_w = max(1e-300, np.abs(b).max(), amax * xmax)
-    s_x = s_w / amax if amax > 0.0 else max(1e-300, xmax)
-    res = 0.0
-    for k in range(m):
-        xk, wk = x[k], w[k]
-        j = normal_of[k]
-        if j < 0:
-            res = max(res, -xk / s_x, -wk / s_w, abs(xk * wk) / (s_x * s_w))
-        else:
-            xj = max(x[j], 0.0)
-            dl = xk + lo[k] * xj
-            dh = hi[k] * xj - xk
-            away = wk * max(dl, 0.0) if wk > 0.0 else -wk * max(dh, 0.0)
-            res = max(res, -dl / s_x, -dh / s_x, away / (s_x * s_w))
-    return res
 
 
 # Row states of a frictional LCP solution: x held at 0, clamped (w = 0), friction at its lower
