@@ -202,6 +202,17 @@ def _expand(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 # --------------------------------------------------------------------------------------------
 
 
+def _pieces_taking_part(body: np.ndarray, collides: np.ndarray,
+                        dynamic: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Which pieces (of owning bodies ``body``) take part, and which of those are dynamic.
+
+    Without ``dynamic`` every piece takes part and the colliding ones count as dynamic."""
+    if dynamic is None:
+        return np.ones(len(body), dtype=bool), collides[body]
+    take = collides[body]
+    return take, np.asarray(dynamic, dtype=bool).reshape(-1)[body] & take
+
+
 def body_bounds(shapes: ShapeSet, position: np.ndarray,
                 angle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Exact world AABBs of every piece: ``(lo, hi)``, each (P, 2)."""
@@ -239,12 +250,7 @@ def candidate_pairs(lo: np.ndarray, hi: np.ndarray, piece_body: np.ndarray,
     out = np.empty((0, 2), dtype=_INT)
     if len(body) < 2:
         return out
-    if dynamic is None:
-        take = np.ones(len(body), dtype=bool)
-        dyn = collides[body]
-    else:
-        take = collides[body]
-        dyn = np.asarray(dynamic, dtype=bool).reshape(-1)[body] & take
+    take, dyn = _pieces_taking_part(body, collides, dynamic)
     if not dyn.any():
         return out
     ids = np.flatnonzero(take)
@@ -342,12 +348,7 @@ def find_contacts(shapes: ShapeSet, position: np.ndarray, angle: np.ndarray,
     bp_margin = margin + 2.0 * param_tol * topo.max_edge_length
     collides = np.asarray(collides, dtype=bool).reshape(-1)
     body = shapes.piece_body
-    if dynamic is None:
-        take = np.ones(len(body), dtype=bool)
-        dyn = collides[body]
-    else:
-        take = collides[body]
-        dyn = np.asarray(dynamic, dtype=bool).reshape(-1)[body] & take
+    take, dyn = _pieces_taking_part(body, collides, dynamic)
     if len(body) < 2 or not dyn.any():
         return Contacts.empty()
     coord = np.abs(position).max(axis=1)

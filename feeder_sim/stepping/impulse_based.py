@@ -108,9 +108,8 @@ import numpy as np
 from feeder_sim._jit import jit
 from feeder_sim.contact.candidates import corner_piece_candidates, world_point
 from feeder_sim.contact.collision import Contacts
-from feeder_sim.contact.dynamics import contact_set, SolverStats
-from feeder_sim.model.scene import SolverSpec
-from feeder_sim.model.world import DRIVEN, FIXED, MOVING, State, World
+from feeder_sim.contact.dynamics import contact_set
+from feeder_sim.model.world import DRIVEN, FIXED, MOVING, State
 from feeder_sim.stepping.protocol import StepContacts, StepperBase
 
 __all__ = ['CollisionResult', 'ImpulseBased', 'ImpulseSettings', 'collide', 'LAWS']
@@ -656,9 +655,8 @@ class ImpulseBased(StepperBase):
 
     settings_type = ImpulseSettings
 
-    def __init__(self, world: World, spec: SolverSpec, stats: SolverStats,
-                 settings: ImpulseSettings | None = None) -> None:
-        super().__init__(world, spec, stats, settings)
+    def prepare(self) -> None:
+        world, spec = self.world, self.spec
         st = self.settings
         if spec.restitution_law not in LAWS:
             raise ValueError(f'restitution_law must be one of {", ".join(LAWS)}, got '

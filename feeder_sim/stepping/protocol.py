@@ -44,7 +44,8 @@ class Stepper(Protocol):
 
 class StepperBase:
     """What every method keeps: the world, the scene's solver spec, the counters it adds to,
-    and its own settings (``settings_type()`` when none are given)."""
+    and its own settings (``settings_type()`` when none are given). A method derives what it
+    needs from them in ``prepare``."""
 
     settings_type: type
 
@@ -54,3 +55,7 @@ class StepperBase:
         self.spec = spec
         self.stats = stats
         self.settings = settings or self.settings_type()
+        self.prepare()
+
+    def prepare(self) -> None:
+        """Build what the method derives from its world, spec and settings."""

@@ -95,7 +95,6 @@ from feeder_sim.contact.dynamics import (
     islands,
     SolverStats,
 )
-from feeder_sim.model.scene import SolverSpec
 from feeder_sim.model.world import State, World
 from feeder_sim.stepping.protocol import StepContacts, StepperBase
 
@@ -241,9 +240,8 @@ class TimeStepper(StepperBase):
 
     settings_type = TimeStepSettings
 
-    def __init__(self, world: World, spec: SolverSpec, stats: SolverStats,
-                 settings: TimeStepSettings | None = None) -> None:
-        super().__init__(world, spec, stats, settings)
+    def prepare(self) -> None:
+        world = self.world
         self._radius = world.radius
         self._dyn = world.dynamic
         self._dyn_idx = np.flatnonzero(self._dyn)

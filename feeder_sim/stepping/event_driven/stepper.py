@@ -81,9 +81,7 @@ from feeder_sim.contact.dynamics import (
     islands,
     NONE,
     SLAVED,
-    SolverStats,
 )
-from feeder_sim.model.scene import SolverSpec
 from feeder_sim.model.world import DRIVEN, FIXED, MOVING, perp, rot, State, World
 from feeder_sim.stepping.event_driven import _chain as chain
 from feeder_sim.stepping.event_driven import _kernels as kern
@@ -235,9 +233,8 @@ class EventDriven(StepperBase):
 
     settings_type = EventSettings
 
-    def __init__(self, world: World, spec: SolverSpec, stats: SolverStats,
-                 settings: EventSettings | None = None) -> None:
-        super().__init__(world, spec, stats, settings)
+    def prepare(self) -> None:
+        world, spec = self.world, self.spec
         self.rtol = spec.tolerance
         dyn = np.flatnonzero(world.dynamic)
         self._dyn = dyn
