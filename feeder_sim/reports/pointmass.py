@@ -89,20 +89,24 @@ def thresholds(c: Conveyor) -> dict[str, float]:
 # Closed forms for p'' = alpha + beta sin(tau), written so that they stay accurate for small
 # s = tau - tau0 (the series avoid the cancellation in s - sin s and cos s - 1 + s^2/2).
 
+def _series_tail(term: float, s2: float, power: int) -> float:
+    """Sum of an alternating Taylor tail from ``term`` (the s^power term) on: each next term
+    is the last times -s^2 / ((power + 1)(power + 2)), until it no longer counts."""
+    total = 0.0
+    while True:
+        total += term
+        term *= -s2 / ((power + 1) * (power + 2))
+        power += 2
+        if abs(term) <= 1e-17 * abs(total):
+            return total
+
+
 def _s_minus_sin(s: float) -> float:
     """s - sin(s)."""
     if abs(s) >= 1.0:
         return s - math.sin(s)
     s2 = s * s
-    term = s * s2 / 6.0
-    total = 0.0
-    k = 1
-    while True:
-        total += term
-        term *= -s2 / ((2 * k + 2) * (2 * k + 3))
-        k += 1
-        if abs(term) <= 1e-17 * abs(total):
-            return total
+    return _series_tail(s * s2 / 6.0, s2, 3)
 
 
 def _cos_taylor_rest(s: float) -> float:
@@ -110,15 +114,7 @@ def _cos_taylor_rest(s: float) -> float:
     if abs(s) >= 1.0:
         return math.cos(s) - 1.0 + 0.5 * s * s
     s2 = s * s
-    term = s2 * s2 / 24.0
-    total = 0.0
-    k = 2
-    while True:
-        total += term
-        term *= -s2 / ((2 * k + 1) * (2 * k + 2))
-        k += 1
-        if abs(term) <= 1e-17 * abs(total):
-            return total
+    return _series_tail(s2 * s2 / 24.0, s2, 4)
 
 
 @dataclass(frozen=True)
