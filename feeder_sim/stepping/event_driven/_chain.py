@@ -24,12 +24,49 @@ and the pair's mu_static, mu_dynamic and restitution.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
 from feeder_sim._jit import jit
 from feeder_sim.model.world import DRIVEN, MOVING
 from feeder_sim.stepping.event_driven import _kernels as kern
+
+
+class ChainTolerances(NamedTuple):
+    """Thresholds of the chain (``EventDriven`` sets them from its settings)."""
+
+    event_threshold: float     # event function value taken as zero
+    slip_tol_mps: float        # slip speed below which a contact sticks, m/s
+    touch_m: float             # gap below which a corner touches, m
+    lcp_tol: float             # residual an LCP answer must reach
+    cascade_window_s: float    # events closer in time count as one cascade, s
+    spin_limit: float          # angular speed of a closed-form mode, rad/s
+    alpha_limit: float         # angular acceleration of a closed-form mode, rad/s^2
+    force_tol: float           # contact force taken as zero, N
+    acc_tol: float             # acceleration taken as zero, m/s^2
+    near_m: float              # a corner this near another edge leaves the chain, m
+    rest_speed_mps: float      # approach speed below which a landing is plastic, m/s
+    friction_impulse: float    # 1.0: tangential impulses at collisions, 0.0: none
+
+
+class BodyArrays(NamedTuple):
+    """What the chain needs of every body."""
+
+    dynamic: np.ndarray        # (n,) bool
+    inv_mass: np.ndarray       # (n,) 1/kg
+    inv_inertia: np.ndarray    # (n,) 1/(kg m^2)
+    radius: np.ndarray         # (n,) m
+    gravity: np.ndarray        # (2,) m/s^2
+
+
+class PhaseModel(NamedTuple):
+    """How every body moves in a closed-form phase (see ``_kernels.advance``)."""
+
+    kind: np.ndarray               # (n,) FIXED / DRIVEN / MOVING
+    index: np.ndarray              # (n,) drive row of a driven body, else -1
+    free_acceleration: np.ndarray  # (n, 2) acceleration of a free body, m/s^2
+    drives: tuple                  # the drives' arrays (``EventDriven._drive_model``)
 
 DONE, EVENT, REFRESH = kern.DONE, kern.EVENT, kern.REFRESH
 # Statistics ``follow`` returns, by index.
@@ -117,7 +154,7 @@ def _touching(pos, ang, held, cands, world, geometry, materials, near_m, touch_m
     pointing out of the edge, of a non-dynamic body, on a dynamic piece, or on an edge
     another piece of its body covers."""
     verts, normals, next_vertex, prev_vertex, piece_start, edge_length, covered = geometry
-    dynamic = world[0]
+    dynamic = world.dynamic
     mu_s, mu_d, restitution = materials
     c_vertex, c_piece = cands[0], cands[1]
     cv_body, cv_local, cp_body, cp_start, cp_end, _, _ = cands[2]
@@ -211,8 +248,9 @@ def _count(stats, x, res, pivots):
 def _impacts(c, pos, ang, vel, om, world, tols, stats, rec, rows):
     """Collision impulses until no contact approaches (``EventDriven._impact``): velocities
     change in place and each impulse is recorded; ``(ok, rows)``."""
-    dynamic, inv_mass, inv_inertia = world[0], world[1], world[2]
-    slip_tol, lcp_tol, rest_speed, friction_impulse = tols[1], tols[3], tols[10], tols[11]
+    dynamic, inv_mass, inv_inertia = world.dynamic, world.inv_mass, world.inv_inertia
+    slip_tol, lcp_tol = tols.slip_tol_mps, tols.lcp_tol
+    rest_speed, friction_impulse = tols.rest_speed_mps, tols.friction_impulse
     k = c[0].shape[0]
     point, normal, _, _ = _geometry(pos, ang, c)
     r_a, r_b = _arms(pos, c, point)
@@ -270,9 +308,10 @@ def _mode_at_event(t, c, pos, ang, vel, om, model, world, tols, acc, stats):
     """The next mode over the contacts ``c`` (``EventDriven._choose_mode``):
     ``(ok, contacts kept, friction, sigma, normal, r_a, r_b)``; not ok where the general
     path must decide (a contact approaches, the LCP misses)."""
-    kind, index, drives = model[0], model[1], model[3]
-    dynamic, inv_mass, inv_inertia, gravity = world[0], world[1], world[2], world[4]
-    slip_tol, lcp_tol, force_tol, acc_tol = tols[1], tols[3], tols[7], tols[8]
+    kind, index, drives = model.kind, model.index, model.drives
+    dynamic, inv_mass, inv_inertia, _, gravity = world
+    slip_tol, lcp_tol = tols.slip_tol_mps, tols.lcp_tol
+    force_tol, acc_tol = tols.force_tol, tols.acc_tol
     k = c[0].shape[0]
     point, normal, gap, _ = _geometry(pos, ang, c)
     for i in range(k):
@@ -331,7 +370,7 @@ def _closed_form(c, friction, sigma, normal, r_a, r_b, om, model, world, tols):
         return True, phi0, phi1, np.zeros(0), np.zeros((0, nd))
     ok, bodies, dv, f = kern.closed_form_mode(
         normal, r_a, r_b, c[3], c[4], dynamic, inv_mass, inv_inertia, friction, sigma, c[10],
-        om, radius, tols[5], tols[6], gravity, index, drives[0])
+        om, radius, tols.spin_limit, tols.alpha_limit, gravity, index, drives[0])
     if not ok:
         return False, phi0, phi1, np.zeros(0), np.zeros((0, nd))
     for q in range(bodies.shape[0]):
@@ -381,12 +420,13 @@ def follow(t0, t_stop, h, state, model, world, held, mode, near, geometry, mater
     mode that runs on. ``stats`` by the indices at the top of this module.
     """
     pos, ang, vel, om = state
-    kind, index = model[0], model[1]
-    drives = model[3]
-    radius = world[3]
+    kind, index = model.kind, model.index
+    drives = model.drives
+    radius = world.radius
     verts, normals = geometry[0], geometry[1]
     friction, sigma, phi0, phi1, f0, f1 = mode
-    threshold, touch_m, cascade_s, near_m = tols[0], tols[2], tols[4], tols[9]
+    threshold, touch_m = tols.event_threshold, tols.touch_m
+    cascade_s, near_m = tols.cascade_window_s, tols.near_m
     capacity = record[6].shape[0]
     n, nd = pos.shape[0], drives[2].shape[0]
     reach = (near[3], near[4], radius, 0.5 * near[5])

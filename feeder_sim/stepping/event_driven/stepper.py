@@ -286,8 +286,9 @@ class EventDriven(StepperBase):
                      np.zeros(world.n))
         # One dynamic body: its closed-form phases run chained through its events (_ed_chain).
         self._chained = nd == 1 and self.settings.chained
-        self._chain_world = (np.asarray(world.dynamic, dtype=np.bool_), world.inv_mass,
-                             world.inv_inertia, radius, np.asarray(world.gravity, dtype=float))
+        self._chain_world = chain.BodyArrays(
+            np.asarray(world.dynamic, dtype=np.bool_), world.inv_mass, world.inv_inertia, radius,
+            np.asarray(world.gravity, dtype=float))
         covered = topo.edge_internal | (np.diff(topo.cover_start) > 0)
         self._chain_geometry = (self._verts, self._normals,
                                 self._next_vertex.astype(np.int64),
@@ -296,11 +297,13 @@ class EventDriven(StepperBase):
                                 np.asarray(topo.edge_length, dtype=float),
                                 np.ascontiguousarray(covered, dtype=np.bool_))
         st = self.settings
-        self._chain_tols = (_EVENT_THRESHOLD, self._slip_tol, st.touch_m, st.lcp_tol,
-                            st.cascade_window_s, _SPIN_FRACTION * self._slip_tol,
-                            _ALPHA_REL * g, self._force_scale * 1e-12, 1e-9 * g,
-                            1e3 * st.touch_m, st.rest_speed_mps,
-                            1.0 if spec.friction_impulse else 0.0)
+        self._chain_tols = chain.ChainTolerances(
+            event_threshold=_EVENT_THRESHOLD, slip_tol_mps=self._slip_tol, touch_m=st.touch_m,
+            lcp_tol=st.lcp_tol, cascade_window_s=st.cascade_window_s,
+            spin_limit=_SPIN_FRACTION * self._slip_tol, alpha_limit=_ALPHA_REL * g,
+            force_tol=self._force_scale * 1e-12, acc_tol=1e-9 * g, near_m=1e3 * st.touch_m,
+            rest_speed_mps=st.rest_speed_mps,
+            friction_impulse=1.0 if spec.friction_impulse else 0.0)
 
     # ----------------------------------------------------------------- state <-> vector
     def _pack(self, s: State) -> np.ndarray:
@@ -680,7 +683,8 @@ class EventDriven(StepperBase):
         status, t_new, steps, events, rows, held, friction, sigma, phi0, phi1, f0, f1, sums = \
             chain.follow(
                 t0, t_stop, self.h_max(), out,
-                (ph.kind, ph.index, self._drives[1][2].phi0, ph.drives), self._chain_world,
+                chain.PhaseModel(ph.kind, ph.index, self._drives[1][2].phi0, ph.drives),
+                self._chain_world,
                 held, (mode.friction.astype(np.int64), mode.sigma.astype(float), ph.phi0,
                        ph.phi1, ph.f0, ph.f1),
                 (near.vertex.astype(np.int64), near.piece.astype(np.int64), near.arrays,
