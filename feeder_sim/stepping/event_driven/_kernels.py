@@ -840,8 +840,8 @@ def relative_velocity(normal, r_a, r_b, body_a, body_b, vel, omega):
 # integrated phases: the held mode's right-hand side and Dormand-Prince steps
 
 # Dormand-Prince 5(4) (Dormand & Prince 1980); row 6 is the 5th-order solution (FSAL).
-_DP_C = np.array([0.0, 1 / 5, 3 / 10, 4 / 5, 8 / 9, 1.0, 1.0])
-_DP_A = np.array([
+DP_C = np.array([0.0, 1 / 5, 3 / 10, 4 / 5, 8 / 9, 1.0, 1.0])
+DP_A = np.array([
     [0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
     [1 / 5, 0.0, 0.0, 0.0, 0.0, 0.0],
     [3 / 40, 9 / 40, 0.0, 0.0, 0.0, 0.0],
@@ -850,7 +850,7 @@ _DP_A = np.array([
     [9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656, 0.0],
     [35 / 384, 0.0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84],
 ])
-_DP_E = np.array([35 / 384 - 5179 / 57600, 0.0, 500 / 1113 - 7571 / 16695,
+DP_E = np.array([35 / 384 - 5179 / 57600, 0.0, 500 / 1113 - 7571 / 16695,
                   125 / 192 - 393 / 640, -2187 / 6784 + 92097 / 339200, 11 / 84 - 187 / 2100,
                   -1 / 40])
 
@@ -992,14 +992,14 @@ def dopri_step(t, y, h, k0, spec, n_events, tol_scale, pos, ang, vel, om):
         for q in range(n):
             s = 0.0
             for j in range(i):
-                s += _DP_A[i, j] * ks[j, q]
+                s += DP_A[i, j] * ks[j, q]
             yi[q] = y[q] + h * s
-        _mode_rhs(t + _DP_C[i] * h, yi, spec, pos, ang, vel, om, acc, ks[i], g, f)
+        _mode_rhs(t + DP_C[i] * h, yi, spec, pos, ang, vel, om, acc, ks[i], g, f)
     err = 0.0
     for q in range(n):
         e = 0.0
         for j in range(7):
-            e += _DP_E[j] * ks[j, q]
+            e += DP_E[j] * ks[j, q]
         err += (h * e / tol_scale[q]) ** 2
     err = math.sqrt(err / n) if n else 0.0
     return yi.copy(), err, ks[6].copy(), g, f

@@ -103,21 +103,12 @@ _ALPHA_REL = 1e-12
 # event back to the general path.
 _CHAIN_ROWS = 512
 
-# Dormand–Prince 5(4) tableau (Dormand & Prince 1980); the 5th-order row is also the FSAL row.
-_C = np.array([0.0, 1 / 5, 3 / 10, 4 / 5, 8 / 9, 1.0, 1.0])
-_A = [
-    [],
-    [1 / 5],
-    [3 / 40, 9 / 40],
-    [44 / 45, -56 / 15, 32 / 9],
-    [19372 / 6561, -25360 / 2187, 64448 / 6561, -212 / 729],
-    [9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656],
-    [35 / 384, 0.0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84],
-]
+# The Dormand–Prince 5(4) tableau of the compiled integrator, as the Python path reads it:
+# stage i's coefficients, the 5th-order (FSAL) weights and the error weights.
+_C = kern.DP_C
+_A = [[float(a) for a in kern.DP_A[i, :i]] for i in range(7)]
 _B5 = np.array(_A[6] + [0.0])
-_B4 = np.array([5179 / 57600, 0.0, 7571 / 16695, 393 / 640, -92097 / 339200, 187 / 2100,
-                1 / 40])
-_E = _B5 - _B4
+_E = kern.DP_E
 
 
 @dataclass
