@@ -23,6 +23,13 @@ def _steps(ts: float, ed: float, ib: float) -> dict[str, float]:
     return {'time_stepping': ts, 'event_driven': ed, 'impulse_based': ib}
 
 
+# The time steps (s) most cases use: the event-driven step is its largest one (events cut it
+# short), the impulse-based step 1 ms; time stepping at 1 ms, or 0.1 ms where impacts and
+# thin bodies need it
+_STEPS_1MS = _steps(1e-3, 1e-2, 1e-3)
+_STEPS_01MS = _steps(1e-4, 1e-2, 1e-3)
+
+
 def _single(name: str, bodies: Callable[[Mapping[str, Any]], list[dict]],
             steps: Mapping[str, float], chunks: int = 50, gravity: float = -G
             ) -> Callable[[str, Mapping[str, Any]], list[SceneRun]]:
@@ -43,8 +50,11 @@ def _chunk(target_s: float, method: str, step_s: float) -> float:
 
 
 def _case(key: str, description: str, build_bodies, measure, criteria, *, steps,
-          duration: Mapping[str, float], gravity: float = -G, chunks: int = 50,
+          duration: float | Mapping[str, float], gravity: float = -G, chunks: int = 50,
           **kw) -> StabilityCase:
+    """A one-scene case; ``duration`` (s) is per method, or one number for every method."""
+    if not isinstance(duration, Mapping):
+        duration = _steps(duration, duration, duration)
     params = {'duration_s': dict(duration), **kw.pop('params', {})}
     return StabilityCase(key=key, description=description,
                          build=_single(key, build_bodies, steps, chunks, gravity),
@@ -133,8 +143,8 @@ for _exp in (2, 4, 6):
         _stack_bodies(_ratio), _drift,
         [Criterion('max_drift_m', 1e-6, meaning='largest displacement of any box, m'),
          Criterion('max_rotation_rad', 1e-6, meaning='largest rotation of any box, rad')],
-        steps=_steps(1e-3, 1e-2, 1e-3), duration=_steps(1.0, 1.0, 1.0),
-        wall_limit_s=60.0, why={'impulse_based': _SINKS.format(r=f'{_ratio:g}')}))
+        steps=_STEPS_1MS, duration=1.0,
+        why={'impulse_based': _SINKS.format(r=f'{_ratio:g}')}))
 
 
 def _heavy_on_light_bodies(p: Mapping[str, Any]) -> list[dict]:
@@ -151,7 +161,7 @@ _register(_case(
     _heavy_on_light_bodies, _drift,
     [Criterion('max_drift_m', 1e-6, meaning='largest displacement of any part, m'),
      Criterion('max_rotation_rad', 1e-6, meaning='largest rotation of any part, rad')],
-    steps=_steps(1e-3, 1e-2, 1e-3), duration=_steps(1.0, 1.0, 1.0), wall_limit_s=60.0,
+    steps=_STEPS_1MS, duration=1.0,
     params={'ratio': 1e6}, why={'impulse_based': _SINKS.format(r='1e6')}))
 
 
@@ -188,7 +198,7 @@ _register(_case(
      Criterion('energy_change', {'time_stepping': 1e-4, 'event_driven': 1e-9,
                                  'impulse_based': 1e-4},
                meaning='max |E(t) - E(0)| / E_ref (no dissipation without friction)')],
-    steps=_steps(1e-3, 1e-2, 1e-3), duration=_steps(0.4, 0.4, 0.4), wall_limit_s=60.0))
+    steps=_STEPS_1MS, duration=0.4))
 
 
 _STEEP = math.radians(60.0)
@@ -205,7 +215,7 @@ _register(_case(
     _sticky_slope_bodies, _drift,
     [Criterion('max_drift_m', 1e-6, meaning='creep of the box, m'),
      Criterion('max_rotation_rad', 1e-6, meaning='rotation of the box, rad')],
-    steps=_steps(1e-3, 1e-2, 1e-3), duration=_steps(1.0, 1.0, 1.0), wall_limit_s=60.0,
+    steps=_STEPS_1MS, duration=1.0,
     why={'impulse_based': 'resting contact is a stream of micro-collisions, each followed by '
                           'a hop of up to 10 nm; on a 60 deg slope gravity pulls the part '
                           'along the slope during every hop, so it creeps (0.7 mm in 1 s)'}))
@@ -236,7 +246,7 @@ _register(_case(
                        '0.1 ms step; 1.0 mm without the friction impulse'),
      Criterion('final_speed_mps', _steps(1e-6, 1e-6, 2 * _MICRO_SPEED),
                meaning='speed at the end, m/s (impulse_based: micro-collision hops)')],
-    steps=_steps(1e-4, 1e-2, 1e-3), duration=_steps(0.1, 0.1, 0.1), wall_limit_s=60.0))
+    steps=_STEPS_01MS, duration=0.1))
 
 
 _ROD_L, _ROD_T, _ROD_THETA = 0.1, 0.001, math.radians(60.0)
@@ -262,7 +272,7 @@ _register(_case(
     _painleve_bodies, _painleve_measure,
     [Criterion('force_lcp_failures', _steps(0.0, 1.0, 0.0), op='>=',
                meaning='event_driven must detect that the force LCP has no solution (count)')],
-    steps=_steps(1e-4, 1e-2, 1e-3), duration=_steps(0.3, 0.3, 0.3), wall_limit_s=60.0,
+    steps=_STEPS_01MS, duration=0.3,
     penetration_m=2e-5, params={'speed_mps': 1.0},
     # the force LCP has no solution here by construction: its failed answer has residual 1
     # (scale-free), which is what the event-driven method detects before switching to the
@@ -291,7 +301,7 @@ _register(_case(
                                  'impulse_based': 1e-6},
                meaning='|E_end / E_start - 1|'),
      Criterion('impacts', 1.0, op='>=', meaning='collisions seen')],
-    steps=_steps(1e-4, 1e-2, 1e-3), duration=_steps(0.5, 0.5, 0.5), wall_limit_s=60.0))
+    steps=_STEPS_01MS, duration=0.5))
 
 
 def _plastic_measure(records: list[_Record], _p) -> dict[str, float]:
@@ -312,7 +322,7 @@ _register(_case(
      Criterion('final_kinetic_j', _steps(1e-12, 1e-12, _micro_ke(0.01)),
                meaning='kinetic energy at the end, J (impulse_based: micro-collision hops)'),
      Criterion('rest_height_error_m', 1e-6, meaning='|y_end - half height|, m')],
-    steps=_steps(1e-4, 1e-2, 1e-3), duration=_steps(0.5, 0.5, 0.5), wall_limit_s=60.0))
+    steps=_STEPS_01MS, duration=0.5))
 
 
 # Geometry: aspect ratio 100, sizes 0.5 mm and 2 m, coincident vertices, parallel edges -----
@@ -339,7 +349,7 @@ _register(_case(
                meaning='kinetic energy at the end, J (impulse_based: micro-collision hops)')],
     # time stepping lands with a penetration of about one step of approach (0.44 m/s h): a
     # 1 mm part needs h = 20 us to keep that within 1 % of its thickness
-    steps=_steps(2e-5, 1e-2, 1e-3), duration=_steps(0.5, 0.5, 0.5), wall_limit_s=60.0,
+    steps=_steps(2e-5, 1e-2, 1e-3), duration=0.5,
     penetration_m=1e-5))
 
 
@@ -393,7 +403,7 @@ def _scale_case(key: str, size_m: float, text: str) -> StabilityCase:
         build=_scaled_runs(size_m), measure=_scaled_measure,
         criteria=(Criterion('dimensionless_mismatch', 1e-3,
                             meaning='max |x/L, y/L, angle (rad) - 20 mm run|'),),
-        duration_s={m: _SCALE_TAUS * tau for m in METHODS}, wall_limit_s=60.0,
+        duration_s={m: _SCALE_TAUS * tau for m in METHODS},
         penetration_m=0.01 * 0.5 * min(size_m, _SCALE_REF_M))
 
 
@@ -430,7 +440,7 @@ _register(_case(
     [Criterion('max_drift_m', 1e-6, meaning='displacement of the three resting boxes, m'),
      Criterion('max_rotation_rad', 1e-6, meaning='rotation of any box, rad'),
      Criterion('landed_error_m', 1e-6, meaning='dropped box off its place on the third, m')],
-    steps=_steps(1e-4, 1e-2, 1e-3), duration=_steps(0.3, 0.3, 0.3), wall_limit_s=60.0,
+    steps=_STEPS_01MS, duration=0.3,
     why={'impulse_based': _SINKS.format(r='1, with four bodies meeting at one corner')}))
 
 
@@ -464,7 +474,7 @@ _register(_case(
     [Criterion('max_rotation_rad', 1e-9, meaning='rotation of either box, rad'),
      Criterion('lateral_drift_m', 1e-9, meaning='sideways motion of the dropped box, m'),
      Criterion('slide_error', 1e-3, meaning='|slide / (v^2 / (2 mu g)) - 1|')],
-    steps=_steps(1e-4, 1e-2, 1e-3), duration=_steps(0.4, 0.4, 0.4), wall_limit_s=60.0,
+    steps=_STEPS_01MS, duration=0.4,
     why={'impulse_based': _SEQUENTIAL.format(
         what='a box landing exactly flat meets the floor at two corners at once; the '
              'sequential sweep takes one corner first, which spins the box (0.16 rad), so the '
@@ -542,8 +552,7 @@ _register(_case(
     [Criterion('crossing_m', 1e-4, meaning="part's reach past the wall's near face, m"),
      Criterion('final_x_m', _WALL_X - _WALL_HALF, meaning='centre at the end (near side), m'),
      Criterion('final_vx_mps', 0.0, meaning='x velocity at the end (bounced back), m/s')],
-    steps=_steps(1e-3, 1e-2, 1e-3), duration=_steps(0.03, 0.03, 0.03), gravity=0.0,
-    wall_limit_s=60.0, chunks=60))
+    steps=_STEPS_1MS, duration=0.03, gravity=0.0, chunks=60))
 
 
 # Newton's cradle: the simultaneous LCP answer and the sequential one (reference 3.5)
@@ -578,8 +587,7 @@ _register(_case(
                meaning="max |v_i - the method's model answer|, m/s (per method, see notes)"),
      Criterion('momentum_error', 1e-12, meaning='|sum v_i / v - 1|'),
      Criterion('energy_change', 1e-9, meaning='|E_end / E_start - 1|')],
-    steps=_steps(1e-4, 1e-2, 1e-3), duration=_steps(0.01, 0.01, 0.01), gravity=0.0,
-    wall_limit_s=60.0,
+    steps=_STEPS_01MS, duration=0.01, gravity=0.0,
     notes={'time_stepping': 'simultaneous impulse LCP over both contacts (the touching pair '
                             'enters with v_N = 0): (-1/3, 2/3, 2/3) v, energy conserved',
            'event_driven': 'the same simultaneous Kawachi LCP at the located collision: '
@@ -642,7 +650,7 @@ _register(_case(
      Criterion('pgs_velocity_residual_mps', 0.05,
                meaning='worst projected Gauss-Seidel velocity residual, m/s (its islands '
                        'that end above 1e-3 m/s are counted as unconverged)')],
-    steps=_steps(1e-3, 1e-2, 1e-3), duration=_steps(0.6, 0.065, 0.05), wall_limit_s=240.0,
+    steps=_STEPS_1MS, duration=_steps(0.6, 0.065, 0.05), wall_limit_s=240.0,
     chunks=30, params={'n_parts': 500},
     # time stepping: a part landing at v lets the Moreau scheme penetrate about v h before the
     # push-out (capped at 0.02 m/s) removes it: the top row lands at sqrt(2 g 0.35 m) = 2.6 m/s
