@@ -122,24 +122,36 @@ def _label_track_axes(ax, ramp_deg: int) -> None:
     ax.legend(fontsize=8)
 
 
-def figure7(out: Path, duration_s: float = 1.0) -> dict:
-    """Fig. 7: with and without the friction impulse, 0 and 3 degree ramps."""
+def _track_figure(path: Path, title: str,
+                  curves: Callable[[int], Iterable[tuple[str, dict, str, str]]]) -> dict:
+    """Position along the track against time on the 0 and 3 degree ramps side by side.
+
+    ``curves(ramp_deg)`` yields ``(key, run, style, label)`` per curve of that panel, ``run`` a
+    :func:`trace`; the runs are returned by key.
+    """
     plt = _plt()
     data = {}
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4), dpi=120, sharey=False)
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), dpi=120)
     for ax, ramp in zip(axes, (0, 3)):
+        for key, run, style, label in curves(ramp):
+            data[key] = run
+            ax.plot(run['t_s'], 1e3 * np.asarray(run['position_m']), style, label=label)
+        _label_track_axes(ax, ramp)
+    _save(fig, path, title)
+    return data
+
+
+def figure7(out: Path, duration_s: float = 1.0) -> dict:
+    """Fig. 7: with and without the friction impulse, 0 and 3 degree ramps."""
+    def curves(ramp: int):
         for friction_impulse, style in ((True, '-'), (False, '--')):
             name = TRACK_SCENES[ramp, friction_impulse]
             run = trace(name, duration_s)
             run['position_at_end_m'] = run['position_m'][-1]
-            data[name] = run
             label = 'with' if friction_impulse else 'without'
-            ax.plot(run['t_s'], 1e3 * np.asarray(run['position_m']), style,
-                    label=f'{label} tangent impulse')
-        _label_track_axes(ax, ramp)
-    _save(fig, out / 'fig7_friction_impulse.png',
-          'Fig. 7: feeding with and without the friction impulse (16 Hz)')
-    return data
+            yield name, run, style, f'{label} tangent impulse'
+    return _track_figure(out / 'fig7_friction_impulse.png',
+                         'Fig. 7: feeding with and without the friction impulse (16 Hz)', curves)
 
 
 def flip(out: Path, gammas: Iterable[float] = np.round(np.arange(1.6, 3.01, 0.1), 2)) -> dict:
@@ -193,21 +205,16 @@ def _flip_interval(rows: list[dict]) -> list[float] | None:
 
 def figure8(out: Path, duration_s: float = 1.0) -> dict:
     """Fig. 8: the simultaneous-LCP event-driven method against the impulse-based method."""
-    plt = _plt()
-    data = {}
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4), dpi=120)
-    for ax, ramp in zip(axes, (0, 3)):
+    def curves(ramp: int):
         name = TRACK_SCENES[ramp, True]
         for method, style in (('event_driven', '-'), ('impulse_based', '--')):
             run = trace(name, duration_s, method=method)
             run['steady_speed_mps'] = steady_speed(name, method=method)
-            data[f'{name}/{method}'] = run
-            ax.plot(run['t_s'], 1e3 * np.asarray(run['position_m']), style,
-                    label=f"{method} ({1e3 * run['steady_speed_mps']:.1f} mm/s steady)")
-        _label_track_axes(ax, ramp)
-    _save(fig, out / 'fig8_methods.png',
-          'Fig. 8: simultaneous frictional LCP (this method) vs impulse-based method')
-    return data
+            yield (f'{name}/{method}', run, style,
+                   f"{method} ({1e3 * run['steady_speed_mps']:.1f} mm/s steady)")
+    return _track_figure(
+        out / 'fig8_methods.png',
+        'Fig. 8: simultaneous frictional LCP (this method) vs impulse-based method', curves)
 
 
 def _outlines_at(sim: Simulator) -> list[tuple[str, str, list[np.ndarray]]]:
