@@ -16,9 +16,7 @@ a mode without a closed form, or two events within the cascade window. Each step
 the LCPs always pivot where the general path first tries the last active set; the two answers
 agree to the LCP tolerance.
 
-Contacts are held as a tuple of arrays, one row per contact: vertex, edge, the edge's piece,
-vertex body, edge body, the vertex, the edge's ends and its normal (each local to its body),
-and the pair's mu_static, mu_dynamic and restitution.
+Contacts are held as :class:`ChainContacts`, arrays with one row per contact.
 """
 
 from __future__ import annotations
@@ -66,7 +64,100 @@ class PhaseModel(NamedTuple):
     kind: np.ndarray               # (n,) FIXED / DRIVEN / MOVING
     index: np.ndarray              # (n,) drive row of a driven body, else -1
     free_acceleration: np.ndarray  # (n, 2) acceleration of a free body, m/s^2
-    drives: tuple                  # the drives' arrays (``EventDriven._drive_model``)
+    drives: kern.Drives
+
+
+class ChainContacts(NamedTuple):
+    """Contacts of the chain, one row per contact (vertex, edges and normal local to their
+    bodies)."""
+
+    vertex: np.ndarray         # (k,) global vertex index
+    edge: np.ndarray           # (k,) global edge index (its first vertex)
+    piece: np.ndarray          # (k,) the edge's piece
+    body_a: np.ndarray         # (k,) vertex body
+    body_b: np.ndarray         # (k,) edge body
+    vertex_local: np.ndarray   # (k, 2)
+    edge_start: np.ndarray     # (k, 2)
+    edge_end: np.ndarray       # (k, 2)
+    normal: np.ndarray         # (k, 2)
+    mu_static: np.ndarray      # (k,)
+    mu_dynamic: np.ndarray     # (k,)
+    restitution: np.ndarray    # (k,)
+
+
+class ChainMode(NamedTuple):
+    """The held contacts' friction state and the closed-form phase of their mode."""
+
+    friction: np.ndarray       # (k,) NO_FRICTION / STICK / SLIDE
+    sigma: np.ndarray          # (k,) slip direction of a sliding contact
+    phi0: np.ndarray           # (n, 2) acceleration without drive terms, m/s^2
+    phi1: np.ndarray           # (n, 2, nd) acceleration per unit drive acceleration
+    f0: np.ndarray             # (2k,) contact forces without drive terms, N
+    f1: np.ndarray             # (2k, nd)
+
+
+class Near(NamedTuple):
+    """Candidate collisions before the held contacts are left out."""
+
+    vertex: np.ndarray         # (c,) global vertex index
+    piece: np.ndarray          # (c,) piece it may enter
+    arrays: kern.CandidateArrays
+    anchor_pos: np.ndarray     # (n, 2) poses at detection, m
+    anchor_ang: np.ndarray     # (n,)
+    margin: float              # m
+
+
+class ModeCandidates(NamedTuple):
+    """The candidates of a mode: those of :class:`Near` but the held corners on their
+    pieces."""
+
+    vertex: np.ndarray
+    piece: np.ndarray
+    arrays: kern.CandidateArrays
+
+
+class ChainGeometry(NamedTuple):
+    """The bodies' shapes as the chain reads them."""
+
+    verts: np.ndarray          # (V, 2) local vertices
+    normals: np.ndarray        # (V, 2) local normal of the edge starting at each vertex
+    next_vertex: np.ndarray    # (V,)
+    prev_vertex: np.ndarray    # (V,)
+    piece_start: np.ndarray    # (P + 1,) first edge of each piece
+    edge_length: np.ndarray    # (V,) m
+    covered: np.ndarray        # (V,) another piece of its body covers part of the edge
+
+
+class ImpulseRecord(NamedTuple):
+    """Contact impulses the chain transmitted, one row per contact and phase or collision."""
+
+    vertex: np.ndarray
+    edge: np.ndarray
+    body_a: np.ndarray
+    body_b: np.ndarray
+    point: np.ndarray          # (m, 2) world point, m
+    normal: np.ndarray         # (m, 2)
+    normal_impulse: np.ndarray     # (m,) N s
+    tangent_impulse: np.ndarray    # (m,) N s
+
+
+class ChainResult(NamedTuple):
+    """What :func:`follow` returns."""
+
+    status: int                # DONE, EVENT or REFRESH
+    t: float                   # s
+    steps: int
+    events: int
+    rows: int                  # rows of the impulse record filled
+    held: ChainContacts        # the mode that runs on (DONE, REFRESH)
+    friction: np.ndarray
+    sigma: np.ndarray
+    phi0: np.ndarray
+    phi1: np.ndarray
+    f0: np.ndarray
+    f1: np.ndarray
+    stats: np.ndarray          # (N_STATS,) by the indices below
+
 
 DONE, EVENT, REFRESH = kern.DONE, kern.EVENT, kern.REFRESH
 # Statistics ``follow`` returns, by index.
@@ -77,25 +168,31 @@ DONE, EVENT, REFRESH = kern.DONE, kern.EVENT, kern.REFRESH
 @jit
 def _take(c, idx):
     """The contacts ``idx`` of ``c``."""
-    return (c[0][idx], c[1][idx], c[2][idx], c[3][idx], c[4][idx], c[5][idx], c[6][idx],
-            c[7][idx], c[8][idx], c[9][idx], c[10][idx], c[11][idx])
+    return ChainContacts(c.vertex[idx], c.edge[idx], c.piece[idx], c.body_a[idx],
+                         c.body_b[idx], c.vertex_local[idx], c.edge_start[idx],
+                         c.edge_end[idx], c.normal[idx], c.mu_static[idx],
+                         c.mu_dynamic[idx], c.restitution[idx])
 
 
 @jit
 def _join(c, d):
     """The contacts of ``c`` followed by those of ``d``."""
-    return (np.concatenate((c[0], d[0])), np.concatenate((c[1], d[1])),
-            np.concatenate((c[2], d[2])), np.concatenate((c[3], d[3])),
-            np.concatenate((c[4], d[4])), np.concatenate((c[5], d[5])),
-            np.concatenate((c[6], d[6])), np.concatenate((c[7], d[7])),
-            np.concatenate((c[8], d[8])), np.concatenate((c[9], d[9])),
-            np.concatenate((c[10], d[10])), np.concatenate((c[11], d[11])))
+    return ChainContacts(
+        np.concatenate((c.vertex, d.vertex)), np.concatenate((c.edge, d.edge)),
+        np.concatenate((c.piece, d.piece)), np.concatenate((c.body_a, d.body_a)),
+        np.concatenate((c.body_b, d.body_b)),
+        np.concatenate((c.vertex_local, d.vertex_local)),
+        np.concatenate((c.edge_start, d.edge_start)), np.concatenate((c.edge_end, d.edge_end)),
+        np.concatenate((c.normal, d.normal)), np.concatenate((c.mu_static, d.mu_static)),
+        np.concatenate((c.mu_dynamic, d.mu_dynamic)),
+        np.concatenate((c.restitution, d.restitution)))
 
 
 @jit
 def _geometry(pos, ang, c):
     """World point, normal, gap and edge parameter of the contacts ``c``."""
-    return kern.held_geometry(pos, ang, c[3], c[4], c[5], c[6], c[7], c[8])
+    return kern.held_geometry(pos, ang, c.body_a, c.body_b, c.vertex_local, c.edge_start,
+                              c.edge_end, c.normal)
 
 
 @jit
@@ -106,8 +203,8 @@ def _arms(pos, c, point):
     r_b = np.empty((k, 2))
     for i in range(k):
         for j in range(2):
-            r_a[i, j] = point[i, j] - pos[c[3][i], j]
-            r_b[i, j] = point[i, j] - pos[c[4][i], j]
+            r_a[i, j] = point[i, j] - pos[c.body_a[i], j]
+            r_b[i, j] = point[i, j] - pos[c.body_b[i], j]
     return r_a, r_b
 
 
@@ -156,18 +253,19 @@ def _touching(pos, ang, held, cands, world, geometry, materials, near_m, touch_m
     verts, normals, next_vertex, prev_vertex, piece_start, edge_length, covered = geometry
     dynamic = world.dynamic
     mu_s, mu_d, restitution = materials
-    c_vertex, c_piece = cands[0], cands[1]
-    cv_body, cv_local, cp_body, cp_start, cp_end, _, _ = cands[2]
-    nothing = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64),
-               np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)),
-               np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0),
-               np.zeros(0), np.zeros(0))
-    for q in range(held[0].shape[0]):
-        a, b = held[3][q], held[4][q]
-        px, py = kern.world_point(pos, ang, a, held[5][q])
-        p = held[2][q]
+    c_vertex, c_piece = cands.vertex, cands.piece
+    cv_body, cv_local, cp_body, cp_start, cp_end, _, _ = cands.arrays
+    nothing = ChainContacts(np.zeros(0, np.int64), np.zeros(0, np.int64),
+                            np.zeros(0, np.int64), np.zeros(0, np.int64),
+                            np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2)),
+                            np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0),
+                            np.zeros(0))
+    for q in range(held.vertex.shape[0]):
+        a, b = held.body_a[q], held.body_b[q]
+        px, py = kern.world_point(pos, ang, a, held.vertex_local[q])
+        p = held.piece[q]
         for e in range(piece_start[p], piece_start[p + 1]):
-            if e == held[1][q]:
+            if e == held.edge[q]:
                 continue
             q0x, q0y = kern.world_point(pos, ang, b, verts[e])
             q1x, q1y = kern.world_point(pos, ang, b, verts[next_vertex[e]])
@@ -215,9 +313,10 @@ def _touching(pos, ang, held, cands, world, geometry, materials, near_m, touch_m
         new_vertex[q], new_edge[q], new_piece[q] = c_vertex[i], e, c_piece[i]
         new_a[q], new_b[q] = a, b
         new_mu_s[q], new_mu_d[q], new_e[q] = mu_s[a, b], mu_d[a, b], restitution[a, b]
-    return True, (new_vertex, new_edge, new_piece, new_a, new_b, verts[new_vertex],
-                  verts[new_edge], verts[next_vertex[new_edge]], normals[new_edge], new_mu_s,
-                  new_mu_d, new_e)
+    return True, ChainContacts(new_vertex, new_edge, new_piece, new_a, new_b,
+                               verts[new_vertex], verts[new_edge],
+                               verts[next_vertex[new_edge]], normals[new_edge], new_mu_s,
+                               new_mu_d, new_e)
 
 
 @jit
@@ -227,7 +326,8 @@ def _record(c, point, normal, p, rec, rows):
     k = point.shape[0]
     for i in range(k):
         r = rows + i
-        rec_vertex[r], rec_edge[r], rec_a[r], rec_b[r] = c[0][i], c[1][i], c[3][i], c[4][i]
+        rec_vertex[r], rec_edge[r] = c.vertex[i], c.edge[i]
+        rec_a[r], rec_b[r] = c.body_a[i], c.body_b[i]
         rec_point[r] = point[i]
         rec_normal[r] = normal[i]
         rec_pn[r], rec_pt[r] = p[i], p[k + i]
@@ -251,22 +351,22 @@ def _impacts(c, pos, ang, vel, om, world, tols, stats, rec, rows):
     dynamic, inv_mass, inv_inertia = world.dynamic, world.inv_mass, world.inv_inertia
     slip_tol, lcp_tol = tols.slip_tol_mps, tols.lcp_tol
     rest_speed, friction_impulse = tols.rest_speed_mps, tols.friction_impulse
-    k = c[0].shape[0]
+    k = c.vertex.shape[0]
     point, normal, _, _ = _geometry(pos, ang, c)
     r_a, r_b = _arms(pos, c, point)
-    bodies = np.unique(c[3])
+    bodies = np.unique(c.body_a)
     no_friction = np.zeros(k, np.int64)
     slave = np.zeros(k)
     for _ in range(20):
-        v_n, v_t = kern.relative_velocity(normal, r_a, r_b, c[3], c[4], vel, om)
+        v_n, v_t = kern.relative_velocity(normal, r_a, r_b, c.body_a, c.body_b, vel, om)
         colliding = v_n < -slip_tol * 10
         if not colliding.any():
             break
-        ok, J, minv, W = kern.contact_jacobian(normal, r_a, r_b, c[3], c[4], dynamic, inv_mass,
-                                               inv_inertia, bodies)
+        ok, J, minv, W = kern.contact_jacobian(normal, r_a, r_b, c.body_a, c.body_b, dynamic,
+                                               inv_mass, inv_inertia, bodies)
         if not ok:
             return False, rows
-        b_full = kern.impact_rhs(v_n, v_t, c[11], rest_speed)
+        b_full = kern.impact_rhs(v_n, v_t, c.restitution, rest_speed)
         # Kawachi's rule (time_stepping.friction_rows): the pre-impact slip picks static or
         # dynamic friction, and dynamic friction cannot reverse the slip.
         friction = np.full(k, kern.BOX_ROW, np.int64)
@@ -274,7 +374,7 @@ def _impacts(c, pos, ang, vel, om, world, tols, stats, rec, rows):
         mu_hi = np.empty(k)
         for i in range(k):
             sliding = abs(v_t[i]) > slip_tol
-            mu = c[10][i] if sliding else c[9][i]
+            mu = c.mu_dynamic[i] if sliding else c.mu_static[i]
             if mu <= 0.0 or friction_impulse == 0.0:
                 friction[i] = 0
             mu_lo[i] = 0.0 if sliding and v_t[i] < 0.0 else mu
@@ -312,12 +412,12 @@ def _mode_at_event(t, c, pos, ang, vel, om, model, world, tols, acc, stats):
     dynamic, inv_mass, inv_inertia, _, gravity = world
     slip_tol, lcp_tol = tols.slip_tol_mps, tols.lcp_tol
     force_tol, acc_tol = tols.force_tol, tols.acc_tol
-    k = c[0].shape[0]
+    k = c.vertex.shape[0]
     point, normal, gap, _ = _geometry(pos, ang, c)
     for i in range(k):
         stats[MAX_PENETRATION] = max(stats[MAX_PENETRATION], -gap[i])
     r_a, r_b = _arms(pos, c, point)
-    v_n, v_t = kern.relative_velocity(normal, r_a, r_b, c[3], c[4], vel, om)
+    v_n, v_t = kern.relative_velocity(normal, r_a, r_b, c.body_a, c.body_b, vel, om)
     fail = (False, c, np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 2)),
             np.zeros((0, 2)), np.zeros((0, 2)))
     for i in range(k):
@@ -327,7 +427,7 @@ def _mode_at_event(t, c, pos, ang, vel, om, model, world, tols, acc, stats):
     c = _take(c, rest)
     normal, r_a, r_b = normal[rest], r_a[rest], r_b[rest]
     v_n, v_t = v_n[rest], v_t[rest]
-    a, b, mu_s, mu_d = c[3], c[4], c[9], c[10]
+    a, b, mu_s, mu_d = c.body_a, c.body_b, c.mu_static, c.mu_dynamic
     k = rest.shape[0]
     sliding = np.abs(v_t) > slip_tol
     sigma = np.sign(v_t)
@@ -362,15 +462,15 @@ def _closed_form(c, friction, sigma, normal, r_a, r_b, om, model, world, tols):
     """The phase of the mode (``EventDriven._closed_form``): ``(ok, phi0, phi1, f0, f1)``."""
     kind, index, free_phi0, drives = model
     dynamic, inv_mass, inv_inertia, radius, gravity = world
-    n, nd = kind.shape[0], drives[2].shape[0]
-    k = c[0].shape[0]
+    n, nd = kind.shape[0], drives.amplitude.shape[0]
+    k = c.vertex.shape[0]
     phi0 = free_phi0.copy()
     phi1 = np.zeros((n, 2, nd))
     if k == 0:
         return True, phi0, phi1, np.zeros(0), np.zeros((0, nd))
     ok, bodies, dv, f = kern.closed_form_mode(
-        normal, r_a, r_b, c[3], c[4], dynamic, inv_mass, inv_inertia, friction, sigma, c[10],
-        om, radius, tols.spin_limit, tols.alpha_limit, gravity, index, drives[0])
+        normal, r_a, r_b, c.body_a, c.body_b, dynamic, inv_mass, inv_inertia, friction, sigma,
+        c.mu_dynamic, om, radius, tols.spin_limit, tols.alpha_limit, gravity, index, drives.u)
     if not ok:
         return False, phi0, phi1, np.zeros(0), np.zeros((0, nd))
     for q in range(bodies.shape[0]):
@@ -386,10 +486,11 @@ def _closed_form(c, friction, sigma, normal, r_a, r_b, om, model, world, tols):
 def _candidates(near, c):
     """The candidates of a mode (vertex, piece, kernel arrays): those of ``near`` but the
     held corners on their pieces."""
-    keep = kern.held_mask(near[0], near[1], c[0], c[2])
-    a = near[2]
-    return (near[0][keep], near[1][keep], (a[0][keep], a[1][keep], a[2][keep], a[3][keep],
-                                           a[4][keep], a[5][keep], a[6][keep]))
+    keep = kern.held_mask(near.vertex, near.piece, c.vertex, c.piece)
+    a = near.arrays
+    return ModeCandidates(near.vertex[keep], near.piece[keep], kern.CandidateArrays(
+        a.vertex_body[keep], a.vertex_local[keep], a.piece_body[keep], a.piece_start[keep],
+        a.piece_end[keep], a.wedge[keep], a.piece_width[keep]))
 
 
 @jit
@@ -423,13 +524,13 @@ def follow(t0, t_stop, h, state, model, world, held, mode, near, geometry, mater
     kind, index = model.kind, model.index
     drives = model.drives
     radius = world.radius
-    verts, normals = geometry[0], geometry[1]
+    verts, normals = geometry.verts, geometry.normals
     friction, sigma, phi0, phi1, f0, f1 = mode
     threshold, touch_m = tols.event_threshold, tols.touch_m
     cascade_s, near_m = tols.cascade_window_s, tols.near_m
-    capacity = record[6].shape[0]
-    n, nd = pos.shape[0], drives[2].shape[0]
-    reach = (near[3], near[4], radius, 0.5 * near[5])
+    capacity = record.normal_impulse.shape[0]
+    n, nd = pos.shape[0], drives.amplitude.shape[0]
+    reach = kern.Reach(near.anchor_pos, near.anchor_ang, radius, 0.5 * near.margin)
     stats = np.zeros(N_STATS)
     acc = np.empty((n, 2))
     p_out, a_out = np.empty((n, 2)), np.empty(n)
@@ -439,20 +540,22 @@ def follow(t0, t_stop, h, state, model, world, held, mode, near, geometry, mater
     t = t0
     steps = events = rows = 0
     while True:
-        k = held[0].shape[0]
+        k = held.vertex.shape[0]
         _, normal, _, _ = _geometry(pos, ang, held)
-        group, n_groups = kern.sticking_groups(kern.contact_groups(held[3], held[4], normal),
-                                               friction)
+        group, n_groups = kern.sticking_groups(
+            kern.contact_groups(held.body_a, held.body_b, normal), friction)
         n_slide = 0
         for i in range(k):
             n_slide += friction[i] == kern.SLIDE
-        contacts = (held[3], held[4], held[5], held[6], held[7], held[8], f0, f1, friction,
-                    sigma, held[9], group, n_groups)
-        bodies = (kind, index, pos.copy(), ang.copy(), vel.copy(), om.copy(), phi0, phi1)
+        contacts = kern.HeldContacts(held.body_a, held.body_b, held.vertex_local,
+                                     held.edge_start, held.edge_end, held.normal, f0, f1,
+                                     friction, sigma, held.mu_static, group, n_groups)
+        bodies = kern.PhaseBodies(kind, index, pos.copy(), ang.copy(), vel.copy(), om.copy(),
+                                  phi0, phi1)
         first_param = k + n_groups + n_slide
-        g = np.empty(first_param + 2 * k + cands[0].shape[0])
+        g = np.empty(first_param + 2 * k + cands.vertex.shape[0])
         status, t_new, taken, offset = kern.advance_watching(
-            t, t_stop, h, threshold, bodies, drives, contacts, cands[2], verts, normals,
+            t, t_stop, h, threshold, bodies, drives, contacts, cands.arrays, verts, normals,
             scales, reach, p_out, a_out, v_out, w_out, dvel, g)
         steps += taken
         if k:
@@ -466,9 +569,9 @@ def follow(t0, t_stop, h, state, model, world, held, mode, near, geometry, mater
             break
         ok, new = _touching(pos, ang, held, cands, world, geometry, materials, near_m, touch_m)
         # room for every collision impulse and the next phase
-        if not ok or rows + 22 * (k + new[0].shape[0]) > capacity:
+        if not ok or rows + 22 * (k + new.vertex.shape[0]) > capacity:
             break
-        c = _join(held, new) if new[0].shape[0] else held
+        c = _join(held, new) if new.vertex.shape[0] else held
         ok, rows = _impacts(c, pos, ang, vel, om, world, tols, stats, record, rows)
         if not ok:
             break
@@ -486,4 +589,5 @@ def follow(t0, t_stop, h, state, model, world, held, mode, near, geometry, mater
         phi0, phi1, f0, f1 = phi0_new, phi1_new, f0_new, f1_new
         events += 1
         cands = _candidates(near, held)
-    return (status, t, steps, events, rows, held, friction, sigma, phi0, phi1, f0, f1, stats)
+    return ChainResult(status, t, steps, events, rows, held, friction, sigma, phi0, phi1, f0,
+                       f1, stats)

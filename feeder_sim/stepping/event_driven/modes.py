@@ -1,0 +1,318 @@
+"""Contact modes of the event-driven method: what happens at an event.
+
+Collisions at the current instant take Kawachi's simultaneous frictional impulse LCP
+(:meth:`ContactModes.impact`); then Baraff's frictional force LCP over the resting contacts
+chooses which contacts press, stick and slide (:meth:`ContactModes.choose`), or, where it has no
+solution (Painlevé), an impulse without collision is applied first. :func:`held_arrays` gives
+the chosen mode's contacts as the kernels take them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from feeder_sim.contact import lcp
+from feeder_sim.contact.collision import Contacts, evaluate_gaps, find_contacts
+from feeder_sim.contact.dynamics import (
+    BOX,
+    contact_set,
+    ContactSet,
+    friction_rows,
+    island_jacobian,
+    islands,
+    NONE,
+    SLAVED,
+    SolverStats,
+)
+from feeder_sim.model.world import rot, State, World
+from feeder_sim.stepping.event_driven import _kernels as kern
+from feeder_sim.stepping.event_driven.bookkeeping import EventSettings, Setup
+from feeder_sim.stepping.protocol import StepContacts
+
+STICK, SLIDE = kern.STICK, kern.SLIDE
+assert (BOX, SLAVED) == (kern.BOX_ROW, kern.SLAVED_ROW)
+
+
+@dataclass
+class ModeChoice:
+    """The contact mode an event leads to, before it is held."""
+
+    features: Contacts        # active contacts
+    friction: np.ndarray      # (k,) NONE / STICK / SLIDE
+    sigma: np.ndarray         # (k,) slip direction of sliding contacts
+    group: np.ndarray         # (k,) parallel-contact group id
+    material: tuple           # (mu_static, mu_dynamic, restitution) of each contact
+    cs: ContactSet | None     # the active contacts' system (None when there are none)
+
+
+def with_geometry(world: World, features: Contacts, state: State) -> ContactSet:
+    """The same vertex-edge features re-evaluated at another configuration."""
+    sh = world.shapes
+    a, b = features.body_a, features.body_b
+    point = state.position[a] + np.einsum('kij,kj->ki', rot(state.angle[a]),
+                                          sh.vertices[features.vertex_a])
+    normal = np.einsum('kij,kj->ki', rot(state.angle[b]), sh.normals[features.edge_b])
+    gap, param = evaluate_gaps(sh, features, state.position, state.angle) if features.n else (
+        np.zeros(0), np.zeros(0))
+    moved = Contacts(features.body_a, features.piece_a, features.vertex_a, features.body_b,
+                     features.piece_b, features.edge_b, point, normal, gap, param)
+    return contact_set(world, state, moved)
+
+
+def relative_velocity(cs: ContactSet, state: State) -> tuple[np.ndarray, np.ndarray]:
+    """Normal and tangential relative velocity of every contact, as
+    :func:`feeder_sim.contact.dynamics.relative_velocity` gives them."""
+    c = cs.contacts
+    return kern.relative_velocity(c.normal, cs.r_a, cs.r_b, c.body_a, c.body_b, state.velocity,
+                                  state.omega)
+
+
+def groups(cs: ContactSet) -> np.ndarray:
+    """Group ids of contacts between the same two bodies along one line (parallel normals)."""
+    c = cs.contacts
+    return kern.contact_groups(c.body_a, c.body_b, c.normal)
+
+
+def jacobian(world: World, cs: ContactSet,
+             bodies: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Contact Jacobian over the (ascending) bodies' (vx, vy, omega) columns, the diagonal
+    of M^-1 (as :func:`island_jacobian` gives them) and the Delassus matrix."""
+    c = cs.contacts
+    ok, J, minv, W = kern.contact_jacobian(c.normal, cs.r_a, cs.r_b, c.body_a, c.body_b,
+                                           world.dynamic, world.inv_mass, world.inv_inertia,
+                                           bodies)
+    if not ok:
+        jac = island_jacobian(world, cs, bodies)
+        J, minv = jac.J, jac.inv_mass
+        W = (J * minv) @ J.T
+    return J, minv, W
+
+
+def held_arrays(setup: Setup, features: Contacts, friction: np.ndarray, sigma: np.ndarray,
+                group: np.ndarray, mu_s: np.ndarray) -> tuple[kern.HeldContacts, int]:
+    """Kernel arrays of held contacts, and how many event functions they watch."""
+    k = features.n
+    if not k:
+        return setup.no_contacts, 0
+    compact, n_groups = kern.sticking_groups(group, friction)
+    n_slide = int(np.sum(friction == SLIDE))
+    v, e = setup.verts, features.edge_b
+    none = np.zeros(0)
+    held = kern.HeldContacts(
+        features.body_a.astype(np.int64), features.body_b.astype(np.int64),
+        v[features.vertex_a], v[e], v[setup.next_vertex[e]], setup.normals[e], none,
+        np.zeros((0, 0)), friction.astype(np.int64), sigma.astype(float), mu_s, compact,
+        n_groups)
+    return held, 3 * k + n_groups + n_slide
+
+
+class ContactModes:
+    """Impacts and force LCPs of the touching contacts at an event.
+
+    Keeps the final active set of the last pivoting solve of each LCP shape: the impulse and
+    force LCPs first try it and keep it when the LCP residual accepts it, since the events of a
+    periodic motion pose nearly the same problems every cycle."""
+
+    def __init__(self, world: World, setup: Setup, settings: EventSettings,
+                 friction_impulse: bool, stats: SolverStats) -> None:
+        self.world = world
+        self.setup = setup
+        self.settings = settings
+        self.friction_impulse = friction_impulse
+        self.stats = stats
+        self.patterns: dict[tuple, np.ndarray] = {}
+
+    def settle(self, state: State, pending: list[StepContacts]) -> ModeChoice:
+        """Resolve collisions at the current instant (impulses into ``pending``), then choose
+        the next contact mode."""
+        w, st = self.world, self.settings
+        # Impacts change velocities only, so the contacts found once hold throughout.
+        contacts = find_contacts(w.shapes, state.position, state.angle, w.dynamic,
+                                 margin=st.touch_m)
+        if not contacts.n:
+            return self.choose(state, None, None, None, pending)
+        self.stats.max_penetration_m = max(self.stats.max_penetration_m,
+                                           float(np.max(-contacts.gap, initial=0.0)))
+        cs = self.contact_set(state, contacts)
+        v_n, v_t = relative_velocity(cs, state)
+        slip_tol = self.setup.slip_tol
+        for _ in range(20):
+            if not (v_n < -slip_tol * 10).any():
+                break
+            self.impact(cs, state, v_n, v_t, pending)
+            v_n, v_t = relative_velocity(cs, state)
+        return self.choose(state, cs, v_n, v_t, pending)
+
+    def impact(self, cs: ContactSet, state: State, v_n: np.ndarray, v_t: np.ndarray,
+               pending: list[StepContacts]) -> None:
+        """Simultaneous frictional impulse LCP (Kawachi) over every touching contact."""
+        st = self.settings
+        slip_tol = self.setup.slip_tol
+        colliding = v_n < -slip_tol * 10
+        for bodies, idx in self.islands(cs):
+            whole = len(idx) == cs.n
+            if not (colliding if whole else colliding[idx]).any():
+                continue
+            sub = cs if whole else cs.subset(idx)
+            J, minv, W = jacobian(self.world, sub, bodies)
+            vn, vt, hit = (v_n, v_t, colliding) if whole else (v_n[idx], v_t[idx], colliding[idx])
+            b_full = kern.impact_rhs(vn, vt, sub.restitution, st.rest_speed_mps)
+            friction, mu_lo, mu_hi = friction_rows(sub, vt, hit, self.friction_impulse, slip_tol)
+            if not self.friction_impulse:
+                friction[:] = NONE
+            p, _, _ = self.solve_lcp('impact', W, b_full, friction, mu_lo, mu_hi)
+            dv, gain, scale = kern.impulse_effect(J, minv, W, p, vn, vt)
+            if gain > 1e-9 * max(1e-12, scale):
+                # Never let a collision create kinetic energy: fall back to the frictionless
+                # impulse, which cannot.
+                self.stats.energy_fixes += 1
+                p, _, _ = self.solve_lcp('impact', W, b_full, np.full(len(idx), NONE), mu_lo,
+                                         mu_hi)
+                dv = kern.impulse_effect(J, minv, W, p, vn, vt)[0]
+            state.velocity[bodies] += dv[:, :2]
+            state.omega[bodies] += dv[:, 2]
+            k = len(idx)
+            pending.append(StepContacts(sub, p[:k], p[k:]))
+            self.stats.impacts += 1
+
+    def choose(self, state: State, cs: ContactSet | None, v_n: np.ndarray | None,
+               v_t: np.ndarray | None, pending: list[StepContacts]) -> ModeChoice:
+        """Baraff's frictional force LCP over resting contacts decides the next phase.
+
+        ``cs`` are the touching contacts (None if there are none), ``v_n, v_t`` their
+        relative velocities."""
+        if cs is None:
+            return ModeChoice(Contacts.empty(), np.zeros(0, int), np.zeros(0), np.zeros(0, int),
+                              (np.zeros(0), np.zeros(0), np.zeros(0)), None)
+        setup = self.setup
+        resting = np.flatnonzero(np.abs(v_n) <= setup.slip_tol * 10)
+        if len(resting) < cs.n:
+            cs = cs.subset(resting)
+            v_n, v_t = v_n[resting], v_t[resting]
+        k = cs.n
+        keep = np.zeros(k, bool)
+        friction = np.zeros(k, np.int64)
+        sigma = np.sign(v_t)
+        acc = self.free_acceleration(state.t)
+        sliding = np.abs(v_t) > setup.slip_tol
+        for bodies, idx in self.islands(cs):
+            whole = len(idx) == k
+            sub = cs if whole else cs.subset(idx)
+            vn, vt, sig = (v_n, v_t, sigma) if whole else (v_n[idx], v_t[idx], sigma[idx])
+            ok, message, a_rel, f, fr = self.force_lcp(sub, state, acc, bodies, vn, vt,
+                                                       sliding[idx], sig)
+            if not ok:
+                # No consistent contact forces (Painlevé): impulse without collision.
+                self.stats.messages.append(
+                    f'force LCP failed at t={state.t:.9f}s ({message}); impulse applied')
+                self.impact_without_collision(sub, state, bodies, pending)
+                vn, vt = relative_velocity(sub, state)
+                ok, message, a_rel, f, fr = self.force_lcp(
+                    sub, state, acc, bodies, vn, vt, np.zeros(len(idx), bool), sig)
+            keep[idx], friction[idx], sigma[idx] = kern.mode_rows(
+                f, a_rel, fr, sub.mu_static, sig, setup.force_scale * 1e-12, 1e-9 * setup.g)
+        sel = np.flatnonzero(keep)
+        active = cs if len(sel) == k else cs.subset(sel)
+        return ModeChoice(active.contacts, friction[sel], sigma[sel], groups(active),
+                          (active.mu_static, active.mu_dynamic, active.restitution), active)
+
+    def force_lcp(self, cs: ContactSet, state: State, acc: np.ndarray, bodies: np.ndarray,
+                  v_n: np.ndarray, v_t: np.ndarray, sliding: np.ndarray, sigma: np.ndarray):
+        """Baraff's force LCP of one island: converged, message, relative accelerations,
+        forces (both stacked normal then tangential) and the friction row treatment."""
+        c = cs.contacts
+        b_full, fr = kern.force_problem(c.normal, cs.r_a, cs.r_b, c.body_a, c.body_b,
+                                        state.omega, acc, v_n, v_t, sliding, cs.mu_static,
+                                        cs.mu_dynamic)
+        if b_full[:c.n].min() >= 0.0:
+            # Every contact would separate by itself: no force (LCP answer x = 0).
+            self.stats.record_trivial(1)
+            return True, '', b_full, np.zeros(2 * c.n), fr
+        _, _, W = jacobian(self.world, cs, bodies)
+        f, ok, message = self.solve_lcp('force', W, b_full, fr, cs.mu_static, cs.mu_static,
+                                        -sigma * cs.mu_dynamic)
+        return ok, message, W @ f + b_full, f, fr
+
+    def free_acceleration(self, t: float) -> np.ndarray:
+        """(n, 2) accelerations without contact forces: gravity, or the prescribed motion."""
+        w = self.world
+        acc = w.prescribed_acceleration(t)
+        acc[w.dynamic] = w.gravity
+        return acc
+
+    def impact_without_collision(self, cs: ContactSet, state: State, bodies: np.ndarray,
+                                 pending: list[StepContacts]) -> None:
+        """The impulse that stops the contacts' approach and slip where no contact forces are
+        consistent (Painlevé)."""
+        v_n, v_t = relative_velocity(cs, state)
+        J, minv, W = jacobian(self.world, cs, bodies)
+        friction, mu_lo, mu_hi = friction_rows(cs, v_t, np.zeros(cs.n, bool), True,
+                                               self.setup.slip_tol)
+        p, _, _ = self.solve_lcp('impact', W,
+                                 np.concatenate([np.minimum(v_n, 0.0), v_t]), friction, mu_lo,
+                                 mu_hi)
+        dv = (minv * (J.T @ p)).reshape(-1, 3)
+        state.velocity[bodies] += dv[:, :2]
+        state.omega[bodies] += dv[:, 2]
+        self.stats.impacts += 1
+        pending.append(StepContacts(cs, p[:cs.n], p[cs.n:]))
+
+    def contact_set(self, state: State, contacts: Contacts) -> ContactSet:
+        """:func:`contact_set`, with the body pairs' materials looked up."""
+        a, b = contacts.body_a, contacts.body_b
+        mu_s, mu_d, e = self.setup.materials
+        return ContactSet(contacts, contacts.normal[:, ::-1] * (-1.0, 1.0),
+                          contacts.point - state.position[a], contacts.point - state.position[b],
+                          mu_s[a, b], mu_d[a, b], e[a, b])
+
+    def islands(self, cs: ContactSet) -> list[tuple[np.ndarray, np.ndarray]]:
+        """(bodies, contacts) of each group of bodies the contacts connect."""
+        dyn = self.setup.dyn
+        if len(dyn) == 1:
+            return [(dyn, np.arange(cs.n))] if cs.n else []
+        return islands(self.world, cs)
+
+    def solve_lcp(self, kind: str, W: np.ndarray, b_full: np.ndarray, friction: np.ndarray,
+                  mu_lo: np.ndarray, mu_hi: np.ndarray,
+                  slave: np.ndarray | None = None) -> tuple[np.ndarray, bool, str]:
+        """A contact LCP posed as for :func:`feeder_sim.contact.dynamics.assemble`: stacked
+        solution (2k,), converged, message.
+
+        The rows' final states (active set) of the last pivoting solve of each problem shape
+        are tried first and kept when the LCP residual accepts them: events of a periodic
+        motion pose nearly the same problem every cycle, so the pivoting solver then runs only
+        when the contact situation changes.
+        """
+        k = len(friction)
+        if k == 0 or b_full[:k].min() >= 0.0:
+            self.stats.record_trivial(1)
+            return np.zeros(2 * k), True, ''
+        friction = friction.astype(np.int64)
+        slave = np.zeros(k) if slave is None else slave
+        tol = self.settings.lcp_tol
+        key = (kind, friction.tobytes(), (mu_lo > 0).tobytes(), (mu_hi > 0).tobytes())
+        pattern = self.patterns.get(key)
+        if pattern is not None:
+            f, x, w, res = kern.lcp_known_pattern(W, b_full, friction, mu_lo, mu_hi, slave,
+                                                  pattern)
+            if res <= tol:
+                self.stats.record(lcp.LCPResult(x, w, 'active set', 0, 0, res, True, ''))
+                return f, True, ''
+        # The compiled Dantzig takes lcp.solve's pivots ~100x faster; an answer that misses
+        # the tolerance goes to lcp.solve and its fallback ladder, as in time_stepping.
+        f, x, w, res, pivots, codes, (A, P, b, normal_of, lo, hi) = kern.lcp_dantzig(
+            W, b_full, friction, mu_lo, mu_hi, slave)
+        if res <= tol:
+            result = lcp.LCPResult(x, w, 'dantzig', pivots, 0, res, True, '')
+        else:
+            self.stats.fallbacks += 1
+            if len(self.stats.messages) < 20:
+                self.stats.messages.append(lcp.dantzig_message(res, codes))
+            result = lcp.solve(lcp.FrictionalLCP(A, b, normal_of, lo, hi), tol=tol)
+            f = P @ result.x
+        self.stats.record(result)
+        if result.converged:
+            self.patterns[key] = kern.lcp_pattern(result.x, normal_of, lo, hi)
+        return f, result.converged, result.message
