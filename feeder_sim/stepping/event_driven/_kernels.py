@@ -24,6 +24,7 @@ half a minute, once); later runs load the cached machine code.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -41,6 +42,100 @@ BOX_ROW, SLAVED_ROW = 1, 2    # contact LCP row's friction (contact.dynamics)
 # a collision event fires (1e-12 m), so a corner that drifts by round-off stays flush.
 FLUSH_M = 1e-11
 FLUSH_ANGLE = 1e-9
+
+
+class Drives(NamedTuple):
+    """The sinusoidal drives of a closed-form phase, ``d(t) = A sin(phase + w (t - t_ref))``
+    along ``u``."""
+
+    u: np.ndarray              # (nd, 2) direction
+    base: np.ndarray           # (nd, 2) position of the driven body at d = 0, m
+    amplitude: np.ndarray      # (nd,) m
+    omega: np.ndarray          # (nd,) rad/s
+    phase: np.ndarray          # (nd,) rad at t_ref
+    t_ref: float               # s
+
+
+class PhaseBodies(NamedTuple):
+    """Every body of a closed-form phase: its kind and the anchor state at the phase start."""
+
+    kind: np.ndarray           # (n,) FIXED / DRIVEN / MOVING
+    index: np.ndarray          # (n,) drive of a DRIVEN body
+    pos0: np.ndarray           # (n, 2) m
+    ang0: np.ndarray           # (n,) rad
+    vel0: np.ndarray           # (n, 2) m/s
+    om0: np.ndarray            # (n,) rad/s
+    phi0: np.ndarray           # (n, 2) acceleration without drive terms, m/s^2
+    phi1: np.ndarray           # (n, 2, nd) acceleration per unit drive acceleration
+
+
+class HeldContacts(NamedTuple):
+    """The held contacts of a mode (vertex and edge local to their bodies), their force
+    coefficients in a closed-form phase and their friction state."""
+
+    body_a: np.ndarray         # (k,) vertex body
+    body_b: np.ndarray         # (k,) edge body
+    vertex: np.ndarray         # (k, 2)
+    edge_start: np.ndarray     # (k, 2)
+    edge_end: np.ndarray       # (k, 2)
+    normal: np.ndarray         # (k, 2) the edge's outward normal
+    f0: np.ndarray             # (2k,) forces without drive terms, N (empty when integrated)
+    f1: np.ndarray             # (2k, nd) forces per unit drive acceleration
+    friction: np.ndarray       # (k,) NO_FRICTION / STICK / SLIDE
+    sigma: np.ndarray          # (k,) slip direction of a sliding contact
+    mu_static: np.ndarray      # (k,)
+    group: np.ndarray          # (k,) sticking group, renumbered 0.. (-1: not sticking)
+    n_groups: int
+
+
+class CandidateArrays(NamedTuple):
+    """Candidate collisions: an active corner against a convex piece of another body."""
+
+    vertex_body: np.ndarray    # (c,)
+    vertex_local: np.ndarray   # (c, 2) the corner in its body's frame, m
+    piece_body: np.ndarray     # (c,)
+    piece_start: np.ndarray    # (c,) first edge of the piece
+    piece_end: np.ndarray      # (c,) one past its last edge
+    wedge: np.ndarray          # (c, 2, 2) the corner's two edge vectors, local
+    piece_width: np.ndarray    # (c,) the piece's minimum width, m
+
+
+class EventScales(NamedTuple):
+    """What the event functions are divided by to be O(1)."""
+
+    force: float               # N
+    speed: float               # m/s
+    gap: float                 # m
+
+
+class Reach(NamedTuple):
+    """How far bodies may move from where the candidates were detected."""
+
+    anchor_pos: np.ndarray     # (n, 2) m
+    anchor_ang: np.ndarray     # (n,) rad
+    radius: np.ndarray         # (n,) m
+    limit: float               # m
+
+
+class RhsSpec(NamedTuple):
+    """Everything the compiled right-hand side of an integrated mode reads (``mode_rhs``)."""
+
+    dyn: np.ndarray            # (nd,) dynamic bodies
+    col: np.ndarray            # (n,) first Jacobian column of a dynamic body, else -1
+    kind: np.ndarray           # (n,) FIXED / DRIVEN / MOVING
+    index: np.ndarray          # (n,) drive of a DRIVEN body
+    pos_fixed: np.ndarray      # (n, 2) pose of the fixed bodies, m
+    ang_fixed: np.ndarray      # (n,)
+    drives: Drives
+    gravity: np.ndarray        # (2,) m/s^2
+    inv_mass: np.ndarray       # (n,) 1/kg
+    inv_inertia: np.ndarray    # (n,) 1/(kg m^2)
+    contacts: HeldContacts
+    mu_dynamic: np.ndarray     # (k,)
+    cands: CandidateArrays | None
+    verts: np.ndarray
+    normals: np.ndarray
+    scales: EventScales
 
 
 @jit
@@ -147,11 +242,9 @@ def _flush(c, s, wedge, nx, ny):
 
 
 @jit
-def candidate_gaps(pos, ang, cv_body, cv_local, cp_body, cp_start, cp_end, cv_wedge, cp_width,
-                   verts, normals, out):
+def candidate_gaps(pos, ang, cands, verts, normals, out):
     """Gap (m) of every candidate vertex against its piece: > 0 outside, < 0 inside."""
-    cands = (cv_body, cv_local, cp_body, cp_start, cp_end, cv_wedge, cp_width)
-    for i in range(cv_body.shape[0]):
+    for i in range(cands.vertex_body.shape[0]):
         out[i] = _candidate_gap(pos, ang, cands, i, verts, normals)
 
 
@@ -179,7 +272,7 @@ def _geometric_events(params, cands, pos, ang, verts, normals, gap_scale, g, j):
     for i in range(params.shape[0]):
         g[j] = 1.0 - params[i]
         j += 1
-    for i in range(cands[0].shape[0]):
+    for i in range(cands.vertex_body.shape[0]):
         g[j] = _candidate_gap(pos, ang, cands, i, verts, normals) / gap_scale
         j += 1
 
@@ -382,28 +475,28 @@ def advance_watching(t0, t_end, h, threshold, bodies, drives, contacts, cands, v
     ``g_hi`` the event functions at t (one per function) and ``offset`` what is added to each
     before testing it (``event_offsets``): the ones that fired are below ``-offset``.
     """
-    nd = drives[2].shape[0]
+    nd = drives.amplitude.shape[0]
     n_events = g_hi.shape[0]
     acc_drive = np.empty(nd)
     dv_scratch = np.empty(nd)
     g_lo = np.empty(n_events)
     _events(t0, t0, bodies, drives, contacts, cands, verts, normals, scales, pos, ang, vel, om,
             acc_drive, dv_scratch, g_lo)
-    offset = event_offsets(g_lo, cands[0].shape[0], threshold)
+    offset = event_offsets(g_lo, cands.vertex_body.shape[0], threshold)
     tp = t0
     steps = 0
     n_bodies = pos.shape[0]
     speed = np.empty(n_bodies)
     turn = np.empty(n_bodies)
-    first = n_events - cands[0].shape[0]
+    first = n_events - cands.vertex_body.shape[0]
     # Bodies stay within the reach's limit of the anchor, where they were at most that far.
-    half_width, corner_reach = _guard_scales(pos, cands, reach[3])
+    half_width, corner_reach = _guard_scales(pos, cands, reach.limit)
     while tp < t_end - 1e-15:
         dt = min(h, t_end - tp)
         _speed_bounds(dt, bodies, drives, vel, om, speed, turn)
-        if not _slow(dt, speed, turn, reach[2], half_width, corner_reach):
-            dt = guarded_step(dt, pos, ang, speed, turn, cands, g_lo, first, offset, scales[2])
-        if not _within_reach(dt, bodies[0], pos, ang, speed, turn, reach):
+        if not _slow(dt, speed, turn, reach.radius, half_width, corner_reach):
+            dt = guarded_step(dt, pos, ang, speed, turn, cands, g_lo, first, offset, scales.gap)
+        if not _within_reach(dt, bodies.kind, pos, ang, speed, turn, reach):
             _events(tp, t0, bodies, drives, contacts, cands, verts, normals, scales, pos, ang,
                     vel, om, acc_drive, dvel_drive, g_hi)
             return REFRESH, tp, steps, offset
@@ -466,28 +559,42 @@ def _locate(tp, h, g_lo, g_hi, hit, t0, offset, bodies, drives, contacts, cands,
     for _ in range(100):
         if hi - lo <= 1e-15 * max(1.0, abs(tp)) + 1e-16:
             break
-        f = np.inf
-        for i in range(g_hi.shape[0]):
-            if g_hi[i] < 0:
-                f = min(f, g_lo[i] / (g_lo[i] - g_hi[i]))
-        if np.isfinite(f):
-            tau = lo + min(max(f, 1e-3), 1 - 1e-3) * (hi - lo)
-        else:
-            tau = 0.5 * (lo + hi)
+        tau = illinois_trial(lo, hi, g_lo, g_hi)
         _events(tp + tau, t0, bodies, drives, contacts, cands, verts, normals, scales, pos, ang,
                 vel, om, acc_drive, dvel_drive, g_all)
         g_t = g_all[hit] + offset
-        if (g_t < 0).any():
-            hi, g_hi, best = tau, g_t, tau
-            if side == -1:
-                g_lo = g_lo * 0.5
-            side = -1
-        else:
-            lo, g_lo = tau, g_t
-            if side == 1:
-                g_hi = np.where(g_hi < 0, g_hi * 0.5, g_hi)
-            side = 1
+        crossed, lo, hi, g_lo, g_hi, side = illinois_narrow(tau, g_t, lo, hi, g_lo, g_hi, side)
+        if crossed:
+            best = tau
     return tp + best
+
+
+@jit
+def illinois_trial(lo, hi, g_lo, g_hi):
+    """The next trial point in [lo, hi] of Illinois regula falsi on the functions that cross
+    below zero (``g_lo`` >= 0 at lo, ``g_hi`` at hi): the earliest linear crossing, kept off
+    the ends, or the midpoint when none crosses."""
+    f = np.inf
+    for i in range(g_hi.shape[0]):
+        if g_hi[i] < 0:
+            f = min(f, g_lo[i] / (g_lo[i] - g_hi[i]))
+    if np.isfinite(f):
+        return lo + min(max(f, 1e-3), 1 - 1e-3) * (hi - lo)
+    return 0.5 * (lo + hi)
+
+
+@jit
+def illinois_narrow(tau, g_t, lo, hi, g_lo, g_hi, side):
+    """The bracket after a trial at tau with values ``g_t``: ``(crossed, lo, hi, g_lo, g_hi,
+    side)``. The end kept twice in a row has its values halved (Illinois), so that the
+    bracket shrinks from both sides."""
+    if (g_t < 0).any():
+        if side == -1:
+            g_lo = g_lo * 0.5
+        return True, lo, tau, g_lo, g_t, -1
+    if side == 1:
+        g_hi = np.where(g_hi < 0, g_hi * 0.5, g_hi)
+    return False, tau, hi, g_t, g_hi, 1
 
 
 # --------------------------------------------------------------------------------------------
@@ -972,7 +1079,7 @@ def mode_rhs(t, y, spec, n_events, pos, ang, vel, om):
     acc = np.empty((pos.shape[0], 2))
     dydt = np.empty(y.shape[0])
     g = np.empty(n_events)
-    f = np.zeros(2 * spec[10][0].shape[0])
+    f = np.zeros(2 * spec.contacts.body_a.shape[0])
     _mode_rhs(t, y, spec, pos, ang, vel, om, acc, dydt, g, f)
     return dydt, g, f
 
@@ -986,7 +1093,7 @@ def dopri_step(t, y, h, k0, spec, n_events, tol_scale, pos, ang, vel, om):
     ks = np.empty((7, n))
     ks[0] = k0
     g = np.empty(n_events)
-    f = np.zeros(2 * spec[10][0].shape[0])
+    f = np.zeros(2 * spec.contacts.body_a.shape[0])
     yi = np.empty(n)
     for i in range(1, 7):
         for q in range(n):
