@@ -29,14 +29,15 @@ from typing import NamedTuple
 import numpy as np
 
 from feeder_sim._jit import jit
-from feeder_sim.contact._lcp_kernels import dantzig as _dantzig
-from feeder_sim.contact._lcp_kernels import lcp_residual
+from feeder_sim.contact._lcp_kernels import BOX_ROW, reduce_lcp, SLAVED_ROW
+from feeder_sim.contact._lcp_kernels import lcp_dantzig as lcp_dantzig
+from feeder_sim.contact._lcp_kernels import lcp_known_pattern as lcp_known_pattern
+from feeder_sim.contact._lcp_kernels import lcp_pattern as lcp_pattern
 from feeder_sim.contact.candidates import world_point
 from feeder_sim.model.world import DRIVEN, FIXED
 
 DONE, EVENT, REFRESH = 0, 1, 2
 NO_FRICTION, STICK, SLIDE = 0, 1, 2
-BOX_ROW, SLAVED_ROW = 1, 2    # contact LCP row's friction (contact.dynamics)
 # A corner within FLUSH_M (m) of an edge line whose edges leave it at most FLUSH_ANGLE (rad)
 # outwards of that line lies flush on it (``_flush``). FLUSH_M is ten times the depth at which
 # a collision event fires (1e-12 m), so a corner that drifts by round-off stays flush.
@@ -629,126 +630,6 @@ def contact_jacobian(normal, r_a, r_b, body_a, body_b, dynamic, inv_mass, inv_in
         J[k + i, c], J[k + i, c + 1], J[k + i, c + 2] = s * tx, s * ty, s * (rx * ty - ry * tx)
     W = (J * minv) @ J.T
     return True, J, minv, W
-
-
-# Row states of a frictional LCP solution: x held at 0, clamped (w = 0), friction at its lower
-# or upper bound (x slaved to its normal).
-HELD, CLAMPED, AT_LO, AT_HI = 0, 1, 2, 3
-
-
-@jit
-def lcp_pattern(x, normal_of, lo, hi):
-    """Row states of a solution x (the active set a pivoting solver ended with)."""
-    m = x.shape[0]
-    out = np.zeros(m, np.int64)
-    for k in range(m):
-        j = normal_of[k]
-        if j < 0:
-            out[k] = CLAMPED if x[k] > 0.0 else HELD
-            continue
-        xj = max(x[j], 0.0)
-        band = 1e-9 * (lo[k] + hi[k]) * xj
-        if xj > 0.0 and hi[k] > 0.0 and abs(x[k] - hi[k] * xj) <= band:
-            out[k] = AT_HI
-        elif xj > 0.0 and lo[k] > 0.0 and abs(x[k] + lo[k] * xj) <= band:
-            out[k] = AT_LO
-        elif x[k] == 0.0:
-            out[k] = HELD
-        else:
-            out[k] = CLAMPED
-    return out
-
-
-@jit
-def lcp_with_pattern(A, b, normal_of, lo, hi, pattern):
-    """The solution with the given row states: clamped rows get w = 0 (least squares)."""
-    m = b.shape[0]
-    col = np.full(m, -1, np.int64)
-    nc = 0
-    for k in range(m):
-        if pattern[k] == CLAMPED:
-            col[k] = nc
-            nc += 1
-    S = np.zeros((m, nc))
-    for k in range(m):
-        if pattern[k] == CLAMPED:
-            S[k, col[k]] = 1.0
-        elif normal_of[k] >= 0 and col[normal_of[k]] >= 0:
-            if pattern[k] == AT_LO:
-                S[k, col[normal_of[k]]] = -lo[k]
-            elif pattern[k] == AT_HI:
-                S[k, col[normal_of[k]]] = hi[k]
-    x = np.zeros(m)
-    if nc == 0:
-        return x
-    AS = A @ S
-    M = np.empty((nc, nc))
-    rhs = np.empty(nc)
-    for k in range(m):
-        if col[k] >= 0:
-            M[col[k]] = AS[k]
-            rhs[col[k]] = -b[k]
-    z = np.linalg.lstsq(M, rhs, 1e-13)[0]
-    return S @ z
-
-
-@jit
-def reduce_lcp(W, friction, mu_lo, mu_hi, slave):
-    """The boxed LCP of :func:`feeder_sim.contact.dynamics.assemble` from the full 2k problem:
-    ``(A, P, rows, normal_of, lo, hi)`` with ``b = b_full[rows]`` and the stacked solution
-    ``P @ x``. Friction NONE drops the row, BOX keeps it, SLAVED ties it to its normal."""
-    c = friction.shape[0]
-    nbox = 0
-    for i in range(c):
-        if friction[i] == BOX_ROW:
-            nbox += 1
-    m = c + nbox
-    P = np.zeros((2 * c, m))
-    rows = np.empty(m, np.int64)
-    normal_of = np.full(m, -1, np.int64)
-    lo = np.zeros(m)
-    hi = np.zeros(m)
-    for i in range(c):
-        P[i, i] = 1.0
-        rows[i] = i
-    r = c
-    for i in range(c):
-        if friction[i] == BOX_ROW:
-            P[c + i, r] = 1.0
-            rows[r], normal_of[r], lo[r], hi[r] = c + i, i, mu_lo[i], mu_hi[i]
-            r += 1
-        elif friction[i] == SLAVED_ROW:
-            P[c + i, i] = slave[i]
-    A = np.empty((m, 2 * c))
-    for i in range(m):
-        A[i] = W[rows[i]]
-    return A @ P, P, rows, normal_of, lo, hi
-
-
-@jit
-def lcp_known_pattern(W, b_full, friction, mu_lo, mu_hi, slave, pattern):
-    """Solve the contact LCP with given row states: ``(stacked solution, x, w, residual)``."""
-    A, P, rows, normal_of, lo, hi = reduce_lcp(W, friction, mu_lo, mu_hi, slave)
-    b = b_full[rows]
-    if pattern.shape[0] != b.shape[0]:
-        x = np.zeros(b.shape[0])
-        return P @ x, x, b, np.inf
-    x = lcp_with_pattern(A, b, normal_of, lo, hi, pattern)
-    return P @ x, x, A @ x + b, lcp_residual(A, b, x, normal_of, lo, hi)
-
-
-@jit
-def lcp_dantzig(W, b_full, friction, mu_lo, mu_hi, slave):
-    """Solve the contact LCP from scratch by the compiled Baraff-Dantzig pivoting
-    (:func:`feeder_sim.contact._lcp_kernels.dantzig`, a port of ``lcp.solve``'s first method):
-    ``(stacked solution, x, w, residual, pivots, abort codes)`` with the reduced problem
-    ``(A, b, normal_of, lo, hi)`` for the caller's fallback when the residual misses."""
-    A, P, rows, normal_of, lo, hi = reduce_lcp(W, friction, mu_lo, mu_hi, slave)
-    b = b_full[rows]
-    m = b.shape[0]
-    x, pivots, code, retry = _dantzig(A, b, normal_of, lo, hi, 50 * m + 50)
-    res = lcp_residual(A, b, x, normal_of, lo, hi)
-    return P @ x, x, A @ x + b, res, pivots, (code, retry), (A, P, b, normal_of, lo, hi)
 
 
 @jit
