@@ -500,25 +500,18 @@ def follow(t0, t_stop, h, state, model, world, held, mode, near, geometry, mater
     contacts resolve (module docstring).
 
     ``state`` (pos, ang, vel, om) is every body's state at t0, updated in place to the returned
-    time. ``model`` (kind, index, free acceleration, drives) and ``world`` (dynamic, inverse
-    mass and inertia, radius, gravity) as ``EventDriven`` holds them; ``held`` the mode's
-    contacts (module docstring) and ``mode`` (friction, sigma, phi0, phi1, f0, f1) their state
-    and phase. ``near`` (vertex, piece, kernel arrays, anchor position, anchor angle, margin)
-    are the candidates before the held ones are left out. ``geometry``: vertices, normals,
-    next and previous vertex, piece start, edge length and whether another piece of its body
-    covers part of an edge; ``materials`` the (n, n) mu_static, mu_dynamic and restitution of
-    body pairs; ``scales`` the event functions' (force, speed, gap); ``tols`` (event threshold,
-    slip tolerance, touch, LCP tolerance, cascade window, spin limit, angular acceleration
-    limit, force and acceleration tolerances of a mode, nearness to another edge, rest speed,
-    friction impulse 1/0).
+    time; ``model`` (:class:`PhaseModel`) and ``world`` (:class:`BodyArrays`) as the stepper
+    holds them; ``held`` the mode's contacts (:class:`ChainContacts`) and ``mode``
+    (:class:`ChainMode`) their state and phase; ``near`` (:class:`Near`) the candidates before
+    the held ones are left out; ``materials`` the (n, n) mu_static, mu_dynamic and restitution
+    of body pairs; ``scales`` those of the event functions.
 
-    Every phase's and collision's contact impulses go into ``record`` (vertex, edge, body_a,
-    body_b, point, normal, normal impulse, tangential impulse), a row per contact.
+    Every phase's and collision's contact impulses go into ``record`` (:class:`ImpulseRecord`),
+    a row per contact.
 
-    Returns ``(status, t, steps, events, rows, held, friction, sigma, phi0, phi1, f0, f1,
-    stats)``: DONE at t_stop, EVENT at an event left to the general path (the mode is then
-    void), REFRESH where the candidates must be detected again; for DONE and REFRESH the held
-    mode that runs on. ``stats`` by the indices at the top of this module.
+    Returns a :class:`ChainResult`: status DONE at t_stop, EVENT at an event left to the
+    general path (the mode is then void), REFRESH where the candidates must be detected again;
+    for DONE and REFRESH the held mode that runs on.
     """
     pos, ang, vel, om = state
     kind, index = model.kind, model.index

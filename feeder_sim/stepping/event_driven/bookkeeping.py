@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -87,6 +88,14 @@ class Candidates:
         return out
 
 
+class ContactMaterial(NamedTuple):
+    """Each contact's material pair."""
+
+    mu_static: np.ndarray      # (k,)
+    mu_dynamic: np.ndarray     # (k,)
+    restitution: np.ndarray    # (k,)
+
+
 @dataclass
 class Phase:
     """Kernel arrays of a closed-form phase (see :mod:`._kernels`)."""
@@ -109,7 +118,7 @@ class Mode:
     friction: np.ndarray      # (k,) NONE / STICK / SLIDE
     sigma: np.ndarray         # (k,) slip direction of sliding contacts
     group: np.ndarray         # (k,) parallel-contact group id
-    material: tuple           # (mu_static, mu_dynamic, restitution) of each contact
+    material: ContactMaterial
     held: kern.HeldContacts   # kernel arrays of the held contacts (forces filled by a phase)
     n_events: int             # event functions besides the candidate collisions
     candidates: Candidates | None = None

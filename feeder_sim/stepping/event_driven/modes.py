@@ -28,7 +28,7 @@ from feeder_sim.contact.dynamics import (
 )
 from feeder_sim.model.world import rot, State, World
 from feeder_sim.stepping.event_driven import _kernels as kern
-from feeder_sim.stepping.event_driven.bookkeeping import EventSettings, Setup
+from feeder_sim.stepping.event_driven.bookkeeping import ContactMaterial, EventSettings, Setup
 from feeder_sim.stepping.protocol import StepContacts
 
 STICK, SLIDE = kern.STICK, kern.SLIDE
@@ -43,7 +43,7 @@ class ModeChoice:
     friction: np.ndarray      # (k,) NONE / STICK / SLIDE
     sigma: np.ndarray         # (k,) slip direction of sliding contacts
     group: np.ndarray         # (k,) parallel-contact group id
-    material: tuple           # (mu_static, mu_dynamic, restitution) of each contact
+    material: ContactMaterial
     cs: ContactSet | None     # the active contacts' system (None when there are none)
 
 
@@ -185,7 +185,7 @@ class ContactModes:
         relative velocities."""
         if cs is None:
             return ModeChoice(Contacts.empty(), np.zeros(0, int), np.zeros(0), np.zeros(0, int),
-                              (np.zeros(0), np.zeros(0), np.zeros(0)), None)
+                              ContactMaterial(np.zeros(0), np.zeros(0), np.zeros(0)), None)
         setup = self.setup
         resting = np.flatnonzero(np.abs(v_n) <= setup.slip_tol * 10)
         if len(resting) < cs.n:
@@ -216,7 +216,8 @@ class ContactModes:
         sel = np.flatnonzero(keep)
         active = cs if len(sel) == k else cs.subset(sel)
         return ModeChoice(active.contacts, friction[sel], sigma[sel], groups(active),
-                          (active.mu_static, active.mu_dynamic, active.restitution), active)
+                          ContactMaterial(active.mu_static, active.mu_dynamic,
+                                          active.restitution), active)
 
     def force_lcp(self, cs: ContactSet, state: State, acc: np.ndarray, bodies: np.ndarray,
                   v_n: np.ndarray, v_t: np.ndarray, sliding: np.ndarray, sigma: np.ndarray):

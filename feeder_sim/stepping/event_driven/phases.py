@@ -23,6 +23,7 @@ from feeder_sim.stepping.event_driven import _kernels as kern
 from feeder_sim.stepping.event_driven.bookkeeping import (
     ALPHA_REL,
     CHAIN_ROWS,
+    ContactMaterial,
     contacts_at,
     count_chain,
     EVENT_THRESHOLD,
@@ -148,18 +149,19 @@ def compiled_rhs(world: World, setup: Setup, mode: Mode, state: State,
         dyn=dyn.astype(np.int64), col=col, kind=free.kind, index=index,
         pos_fixed=state.position.copy(), ang_fixed=state.angle.copy(), drives=drives,
         gravity=np.asarray(world.gravity, dtype=float), inv_mass=world.inv_mass,
-        inv_inertia=world.inv_inertia, contacts=mode.held, mu_dynamic=mode.material[1],
+        inv_inertia=world.inv_inertia, contacts=mode.held, mu_dynamic=mode.material.mu_dynamic,
         cands=None, verts=setup.verts, normals=setup.normals, scales=setup.scales)
 
 
 def _store(world: World, setup: Setup, state: State, t: float, out: tuple) -> None:
     """The dynamic bodies of ``out`` (pos, ang, vel, om) into ``state`` at t."""
     d = setup.dyn
+    pos, ang, vel, om = out
     state.t = t
-    state.position[d] = out[0][d]
-    state.angle[d] = out[1][d]
-    state.velocity[d] = out[2][d]
-    state.omega[d] = out[3][d]
+    state.position[d] = pos[d]
+    state.angle[d] = ang[d]
+    state.velocity[d] = vel[d]
+    state.omega[d] = om[d]
     world.apply_prescribed_motion(state)
 
 
@@ -253,10 +255,10 @@ def follow_chain(world: World, setup: Setup, mode: Mode, state: State, t_stop: f
             held.edge_start, held.edge_end, held.normal)
         features = Contacts(held.body_a, setup.vertex_piece[held.vertex], held.vertex,
                             held.body_b, held.piece, held.edge, point, normal, gap, param)
-        material = (held.mu_static, held.mu_dynamic, held.restitution)
+        material = ContactMaterial(held.mu_static, held.mu_dynamic, held.restitution)
         group = kern.contact_groups(features.body_a, features.body_b, normal)
         kernel_held, n_events = held_arrays(setup, features, friction, sigma, group,
-                                            material[0])
+                                            material.mu_static)
         mode = Mode(features, friction, sigma, group, material, kernel_held, n_events)
         mode.phase = Phase(ph.kind, ph.index, res.phi0, res.phi1, ph.drives,
                            kernel_held._replace(f0=res.f0, f1=res.f1), res.f0, res.f1)

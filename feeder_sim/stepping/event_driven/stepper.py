@@ -164,7 +164,7 @@ class EventDriven(StepperBase):
     def _hold(self, state: State, choice: ModeChoice) -> None:
         """Hold a mode from ``state`` on: closed form if it has one, else integrated."""
         held, n_events = held_arrays(self.setup, choice.features, choice.friction,
-                                     choice.sigma, choice.group, choice.material[0])
+                                     choice.sigma, choice.group, choice.material.mu_static)
         mode = self._mode = Mode(choice.features, choice.friction, choice.sigma, choice.group,
                                  choice.material, held, n_events)
         mode.phase = phases.closed_form(self.world, self.setup, mode, state, choice.cs,
