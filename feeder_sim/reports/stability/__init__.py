@@ -33,8 +33,7 @@ from pathlib import Path
 import time
 from typing import Any
 
-from feeder_sim.model.scene import METHODS
-from feeder_sim.reports.stability.cases import SCENES
+from feeder_sim.reports.stability.cases import METHODS, SCENES
 from feeder_sim.reports.stability.harness import (
     _jsonable,
     _run_isolated,
