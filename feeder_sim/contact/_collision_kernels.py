@@ -1,12 +1,12 @@
 """Compiled narrow phase and contact clean-up of ``collision.find_contacts``.
 
-They give the same contacts, to the bit, as the numpy reference functions in ``collision``
-(``_vertices_vs_edges``, ``_not_internal``, ``_vertex_vertex_keep``, ``_merge_duplicates``),
-with the same tests and arithmetic. Library sorts, ``searchsorted`` and sets are avoided: each
-pulls seconds of generic code into the compile.
+The tests are those the module docstring of ``collision`` states. Library sorts,
+``searchsorted`` and sets are avoided: each pulls seconds of generic code into the compile.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 
@@ -72,8 +72,8 @@ def _where(mask):
 @inner
 def _vertex_edge(pv_lo, pv_hi, qe_lo, qe_hi, w, nw, active, internal, nxt, prv, elen, margin,
                  depth, tie, param_tol, angle_tol, out_v, out_e, out_g, out_t, n_out):
-    """Vertices pv_lo..pv_hi-1 of one piece against edges qe_lo..qe_hi-1 of another: the
-    per-vertex body of ``collision._vertices_vs_edges`` (same arithmetic, same bits)."""
+    """Vertices pv_lo..pv_hi-1 of one piece against edges qe_lo..qe_hi-1 of another: each
+    active vertex takes the least-penetrated face it can touch (``collision``'s step 3)."""
     for v in range(pv_lo, pv_hi):
         if not active[v]:
             continue
@@ -118,17 +118,32 @@ def _vertex_edge(pv_lo, pv_hi, qe_lo, qe_hi, w, nw, active, internal, nxt, prv, 
     return n_out
 
 
+class NarrowPhaseTolerances(NamedTuple):
+    """The scalars of ``narrow_phase`` (``collision.find_contacts``' arguments and defaults)."""
+
+    bp_margin_m: float       # broad phase: AABBs within this distance pair up
+    margin_m: float          # contacts up to this gap
+    depth_m: float           # and down to minus this gap; < 0: depth_fraction per pair
+    depth_fraction: float    # default depth, share of the smaller piece width
+    tie_rel: float           # face ties, relative to the pair's coordinate scale
+    param_tol: float         # edge-parameter slack at the edge's ends
+    angle_tol: float         # supporting-vertex slack per unit edge length
+
+
 @jit
-def narrow_phase(w, nw, lo, hi, piece_start, piece_body, take, dyn, bp_margin, margin,
-                 depth, piece_width, depth_fraction, coord, radius, tie_rel, active, internal,
-                 nxt, prv, elen, param_tol, angle_tol):
-    """Vertex-edge contacts of all piece pairs whose AABBs are within ``bp_margin``.
+def narrow_phase(w, nw, lo, hi, piece_start, piece_body, take, dyn, piece_width, coord, radius,
+                 active, internal, nxt, prv, elen, tol):
+    """Vertex-edge contacts of all piece pairs whose AABBs are within ``tol.bp_margin_m``
+    (``tol`` a :class:`NarrowPhaseTolerances`).
 
     The pair set is that of ``collision.candidate_pairs`` (closed AABB overlap on both axes,
     pieces of different bodies, both taking part, at least one dynamic), found by a sweep
-    along x; the per-pair test is ``collision._vertices_vs_edges`` in both directions.
+    along x; the per-pair test is ``_vertex_edge`` in both directions.
     ``depth < 0`` means the default per pair (``depth_fraction`` x the smaller piece width).
     Returns unordered (vertex, edge, gap, edge_param) and the number of candidate pairs."""
+    bp_margin, margin, depth = tol.bp_margin_m, tol.margin_m, tol.depth_m
+    depth_fraction, tie_rel = tol.depth_fraction, tol.tie_rel
+    param_tol, angle_tol = tol.param_tol, tol.angle_tol
     n_p = piece_body.shape[0]
     ids = np.empty(n_p, np.int64)
     n_t = 0
@@ -194,9 +209,10 @@ def narrow_phase(w, nw, lo, hi, piece_start, piece_body, take, dyn, bp_margin, m
 @jit
 def clean_contacts(vert, edge, gap, t, cover_start, cover_lo, cover_hi, nxt, canon, vbody,
                    nw, n_vertices, n_bodies, param_tol, angle_tol):
-    """The clean-up of ``collision.find_contacts`` after the narrow phase, same results:
-    ``_not_internal`` and ``_vertex_vertex_keep`` on the raw contacts, ``_merge_duplicates``
-    on the survivors, then the order by (min body, max body, piece_a, vertex, piece_b, edge)
+    """The clean-up of ``collision.find_contacts`` after the narrow phase: contacts on
+    internal edge portions and one of each vertex-on-vertex pair dropped from the raw
+    contacts, duplicates of one canonical vertex against parallel edges of one body merged
+    among the survivors, then the order by (min body, max body, piece_a, vertex, piece_b, edge)
     (pieces are numbered in vertex order, so vertex and edge imply the pieces). Returns the
     indices of the kept contacts in that order."""
     k = vert.shape[0]

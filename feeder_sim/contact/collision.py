@@ -38,12 +38,10 @@ Pipeline of :func:`find_contacts`
    are removed, vertex-on-vertex pairs are reduced to one contact, duplicates of the same
    body-frame vertex against parallel edges of one body are merged, and the result is sorted.
 
-Steps 2-4 run in numba kernels (``_collision_kernels.narrow_phase``, ``clean_contacts``): the
-same tests with the same arithmetic, so the contacts are identical to the bit to those of the
-vectorised numpy functions below (``candidate_pairs``, ``_vertices_vs_edges``,
-``_not_internal``, ``_vertex_vertex_keep``, ``_merge_duplicates``), which stay as the
-reference. The numpy pipeline cost ~0.6 ms per call for one box on a track, mostly fixed
-numpy overhead; the kernels take ~0.05 ms.
+Steps 2-4 run in numba kernels (``_collision_kernels.narrow_phase``, ``clean_contacts``);
+their sweep finds the pairs of :func:`candidate_pairs`, the vectorised broad phase kept here
+for callers that want the pairs alone. The kernels take ~0.05 ms per call for one box on a
+track, where the numpy pipeline they replaced cost ~0.6 ms, mostly fixed numpy overhead.
 
 Compound bodies (concave parts, segmented tracks)
 -------------------------------------------------
@@ -86,8 +84,12 @@ import math
 
 import numpy as np
 
-from feeder_sim.contact._collision_kernels import clean_contacts, narrow_phase
-from feeder_sim.model.shapes import ANGLE_TOL, PARAM_TOL, ShapeSet, ShapeTopology
+from feeder_sim.contact._collision_kernels import (
+    clean_contacts,
+    narrow_phase,
+    NarrowPhaseTolerances,
+)
+from feeder_sim.model.shapes import ANGLE_TOL, PARAM_TOL, ShapeSet
 
 __all__ = [
     "ANGLE_TOL",
@@ -274,57 +276,6 @@ def candidate_pairs(lo: np.ndarray, hi: np.ndarray, piece_body: np.ndarray,
     return np.column_stack((p[o], q[o])).astype(_INT, copy=False)
 
 
-# --------------------------------------------------------------------------------------------
-# Narrow phase
-# --------------------------------------------------------------------------------------------
-
-
-def _vertices_vs_edges(iv, ie, w, nw, topo: ShapeTopology, margin, depth_g, tie_g,
-                       param_tol, angle_tol):
-    """Vertices ``iv`` (g, ma) of one piece against edges ``ie`` (g, mb) of the other.
-
-    Returns (vertex, edge, gap, edge_param) of the accepted contacts.
-    """
-    pv = w[iv]
-    q0 = w[ie]
-    n = nw[ie]
-    dx = pv[:, :, None, 0] - q0[:, None, :, 0]
-    dy = pv[:, :, None, 1] - q0[:, None, :, 1]
-    d = n[:, None, :, 0] * dx + n[:, None, :, 1] * dy  # (g, ma, mb)
-    internal = topo.edge_internal[ie]  # (g, mb)
-    dmax = np.where(internal[:, None, :], -np.inf, d).max(axis=2)  # (g, ma)
-    tie = tie_g[:, None]
-    # the selected face has dmax - tie <= d <= dmax: cull rows that cannot give a contact
-    g, k = np.nonzero((dmax - tie <= margin) & (dmax >= -depth_g[:, None])
-                      & topo.vertex_active[iv])
-    if len(g) == 0:
-        return (np.empty(0, dtype=_INT),) * 2 + (np.empty(0),) * 2
-    d, dx, dy = d[g, k], dx[g, k], dy[g, k]  # (r, mb)
-    ie_r, n_r, q0_r = ie[g], n[g], q0[g]
-    q1 = w[topo.next_vertex[ie_r]]
-    ex = q1[..., 0] - q0_r[..., 0]
-    ey = q1[..., 1] - q0_r[..., 1]
-    t = (dx * ex + dy * ey) / (ex * ex + ey * ey)
-    v_r = iv[g, k]
-    p_r = pv[g, k][:, None, :]
-    iprev = topo.prev_vertex[v_r]
-    u = w[iprev][:, None, :] - p_r
-    x = w[topo.next_vertex[v_r]][:, None, :] - p_r
-    nx, ny = n_r[..., 0], n_r[..., 1]
-    su = u[..., 0] * nx + u[..., 1] * ny
-    sx = x[..., 0] * nx + x[..., 1] * ny
-    slack_u = np.maximum(margin, angle_tol * topo.edge_length[iprev])[:, None]
-    slack_x = np.maximum(margin, angle_tol * topo.edge_length[v_r])[:, None]
-    valid = (~internal[g]
-             & (t >= -param_tol) & (t <= 1.0 + param_tol)
-             & (su >= -slack_u) & (sx >= -slack_x))
-    j = np.where(valid, d, -np.inf).argmax(axis=1)
-    r = np.arange(len(j))
-    dsel, tsel = d[r, j], t[r, j]
-    keep = valid[r, j] & (dsel <= margin) & (dsel >= -depth_g[g])
-    return v_r[keep], ie_r[r, j][keep], dsel[keep], tsel[keep]
-
-
 def find_contacts(shapes: ShapeSet, position: np.ndarray, angle: np.ndarray,
                   collides: np.ndarray, *, margin: float, depth: float | None = None,
                   dynamic: np.ndarray | None = None, param_tol: float = PARAM_TOL,
@@ -352,11 +303,14 @@ def find_contacts(shapes: ShapeSet, position: np.ndarray, angle: np.ndarray,
     if len(body) < 2 or not dyn.any():
         return Contacts.empty()
     coord = np.abs(position).max(axis=1)
+    tol = NarrowPhaseTolerances(
+        bp_margin_m=bp_margin, margin_m=margin, depth_m=-1.0 if depth is None else float(depth),
+        depth_fraction=DEPTH_FRACTION, tie_rel=_TIE_REL, param_tol=float(param_tol),
+        angle_tol=float(angle_tol))
     vert, edge, gap, t, _ = narrow_phase(
-        w, nw, lo, hi, shapes.piece_start, body, take, dyn, bp_margin, margin,
-        -1.0 if depth is None else float(depth), topo.piece_width, DEPTH_FRACTION, coord,
-        shapes.radius, _TIE_REL, topo.vertex_active, topo.edge_internal, topo.next_vertex,
-        topo.prev_vertex, topo.edge_length, float(param_tol), float(angle_tol))
+        w, nw, lo, hi, shapes.piece_start, body, take, dyn, topo.piece_width, coord,
+        shapes.radius, topo.vertex_active, topo.edge_internal, topo.next_vertex,
+        topo.prev_vertex, topo.edge_length, tol)
     if len(vert) == 0:
         return Contacts.empty()
     o = clean_contacts(vert, edge, gap, t, topo.cover_start, topo.cover_lo, topo.cover_hi,
@@ -369,71 +323,6 @@ def find_contacts(shapes: ShapeSet, position: np.ndarray, angle: np.ndarray,
     return Contacts(body_a=body_a, piece_a=piece_a, vertex_a=vert,
                     body_b=body_b, piece_b=piece_b, edge_b=edge,
                     point=w[vert], normal=nw[edge], gap=gap[o], edge_param=t[o])
-
-
-def _not_internal(topo: ShapeTopology, edge, t, param_tol) -> np.ndarray:
-    """False for contacts whose clipped projection lies on an internal portion of the edge.
-
-    A portion is treated as open where it ends inside the edge (a concave corner of the
-    body: a contact exactly there is real) and closed where it reaches an end of the edge.
-    """
-    keep = np.ones(len(edge), dtype=bool)
-    counts = topo.cover_start[edge + 1] - topo.cover_start[edge]
-    if not counts.any():
-        return keep
-    owner, offset = _expand(counts)
-    iv = topo.cover_start[edge[owner]] + offset
-    tc = np.clip(t[owner], 0.0, 1.0)
-    lo, hi = topo.cover_lo[iv], topo.cover_hi[iv]
-    # open at boundaries inside the edge (a concave corner of the body: the contact there is
-    # real), closed where the internal portion reaches an end of the edge (a seam)
-    hit = (((tc > lo + param_tol) | (lo <= param_tol))
-           & ((tc < hi - param_tol) | (hi >= 1.0 - param_tol)))
-    keep[owner[hit]] = False
-    return keep
-
-
-def _vertex_vertex_keep(topo: ShapeTopology, vert, edge, t, n_vertices, param_tol):
-    """Drop one of each vertex-on-vertex pair (keep the edge of the lower-numbered body)."""
-    keep = np.ones(len(vert), dtype=bool)
-    end = np.where(np.abs(t) <= param_tol, edge,
-                   np.where(np.abs(t - 1.0) <= param_tol, topo.next_vertex[edge], -1))
-    cand = np.flatnonzero(end >= 0)
-    if len(cand) < 2:
-        return keep
-    cv, ce = topo.vertex_canon[vert[cand]], topo.vertex_canon[end[cand]]
-    matched = np.isin(ce * n_vertices + cv, cv * n_vertices + ce)
-    higher_edge = topo.vertex_body[edge[cand]] > topo.vertex_body[vert[cand]]
-    keep[cand[matched & higher_edge]] = False
-    return keep
-
-
-def _merge_duplicates(topo: ShapeTopology, vert, edge, gap, nw, angle_tol) -> np.ndarray:
-    """Merge contacts of one canonical vertex against parallel edges of one body."""
-    keep = np.ones(len(vert), dtype=bool)
-    if len(vert) < 2:
-        return keep
-    ba, cv, bb = topo.vertex_body[vert], topo.vertex_canon[vert], topo.vertex_body[edge]
-    o = np.lexsort((edge, vert, gap, bb, cv, ba))
-    same = (ba[o][1:] == ba[o][:-1]) & (cv[o][1:] == cv[o][:-1]) & (bb[o][1:] == bb[o][:-1])
-    if not same.any():
-        return keep
-    starts = np.flatnonzero(~np.concatenate(([False], same)))
-    ends = np.append(starts[1:], len(o))
-    for s0, s1 in zip(starts, ends, strict=True):
-        if s1 - s0 < 2:
-            continue
-        kept: list[int] = []
-        for c in o[s0:s1]:
-            n = nw[edge[c]]
-            for k in kept:
-                m = nw[edge[k]]
-                if n @ m > 0 and abs(n[0] * m[1] - n[1] * m[0]) <= angle_tol:
-                    keep[c] = False
-                    break
-            else:
-                kept.append(int(c))
-    return keep
 
 
 # --------------------------------------------------------------------------------------------
