@@ -16,6 +16,8 @@ library sorts, ``lstsq``, ``@`` and slice assignment, and is kept flat, for comp
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from feeder_sim._jit import inner, jit
@@ -229,6 +231,18 @@ def _island_residual(lo_c, hi_c, a, b, ja, jb, dv, b_n, b_t, box, mu_lo, mu_hi, 
     return max(r, 0.0), rv
 
 
+@inner(inline='always')
+def _contact_velocity(i, ia, ib, nx, ny, r_a, r_b, velocity, omega):
+    """Normal and tangential relative velocity (m/s) of contact i (``dynamics.relative_velocity``
+    with the same operation order, so the same bits)."""
+    pax = velocity[ia, 0] + omega[ia] * -r_a[i, 1]
+    pay = velocity[ia, 1] + omega[ia] * r_a[i, 0]
+    pbx = velocity[ib, 0] + omega[ib] * -r_b[i, 1]
+    pby = velocity[ib, 1] + omega[ib] * r_b[i, 0]
+    rx, ry = pax - pbx, pay - pby
+    return rx * nx + ry * ny, rx * -ny + ry * nx
+
+
 @jit
 def contact_velocities(a, b, normal, r_a, r_b, velocity, omega):
     """Normal and tangential relative velocity of every contact (``dynamics.relative_velocity``
@@ -237,15 +251,8 @@ def contact_velocities(a, b, normal, r_a, r_b, velocity, omega):
     v_n = np.empty(k)
     v_t = np.empty(k)
     for i in range(k):
-        ia, ib = a[i], b[i]
-        pax = velocity[ia, 0] + omega[ia] * -r_a[i, 1]
-        pay = velocity[ia, 1] + omega[ia] * r_a[i, 0]
-        pbx = velocity[ib, 0] + omega[ib] * -r_b[i, 1]
-        pby = velocity[ib, 1] + omega[ib] * r_b[i, 0]
-        rx, ry = pax - pbx, pay - pby
-        nx, ny = normal[i, 0], normal[i, 1]
-        v_n[i] = rx * nx + ry * ny
-        v_t[i] = rx * -ny + ry * nx
+        v_n[i], v_t[i] = _contact_velocity(i, a[i], b[i], normal[i, 0], normal[i, 1], r_a, r_b,
+                                           velocity, omega)
     return v_n, v_t
 
 
@@ -294,11 +301,25 @@ def speed_bounds(velocity, omega, radius, dynamic):
     return v_dyn, v_other, spin, 2.0 * spread
 
 
+class RowSettings(NamedTuple):
+    """The scalars ``contact_rows`` decides and builds the rows with."""
+
+    h_s: float                  # time step
+    touch_m: float              # a contact touches at gap <= touch_m
+    max_rows: int               # an island with more rows is a pile
+    push_out: float             # share of a pile's penetration pushed out per step
+    push_max_mps: float         # cap of that push-out velocity
+    slop_m: float               # penetration a pile keeps
+    collide_speed_mps: float    # a contact approaching faster (v_N below this) collides
+    slip_tol_mps: float         # a pre-step slip above this slides (dynamic friction)
+    friction_impulse: bool      # colliding contacts get friction rows too
+    spec_depth: float           # speculative allowance, share of the smaller piece width
+    reach_m: float              # distance a point can travel in the step
+
+
 @jit
 def contact_rows(a, b, point, normal, gap, order, starts, position, v_end, w_end, v_pre, w_pre,
-                 mu_s_body, mu_d_body, e_body, h, touch, max_rows, push_out, push_max, slop,
-                 collide_speed, slip_tol, friction_impulse, piece_a, piece_b, piece_width,
-                 spec_depth, reach):
+                 mu_s_body, mu_d_body, e_body, piece_a, piece_b, piece_width, settings):
     """The per-contact part of ``TimeStepper._contacts`` in one pass (the numpy expressions it
     replaces are quoted; same operations in the same order, so the same bits).
 
@@ -313,7 +334,13 @@ def contact_rows(a, b, point, normal, gap, order, starts, position, v_end, w_end
     kept contact: ``dynamics.contact_set``'s tangent, r_a, r_b, mu_static, mu_dynamic,
     restitution; the free end-of-step velocities v_N, v_T (``v_end`` / ``w_end``); the
     pre-step slip v_T (``v_pre`` / ``w_pre``); pile, colliding, the normal rows' b, then
-    ``dynamics.friction_rows``' BOX flag, mu_lo, mu_hi; and the smallest kept gap."""
+    ``dynamics.friction_rows``' BOX flag, mu_lo, mu_hi; and the smallest kept gap.
+    ``settings`` is a :class:`RowSettings`."""
+    h, touch, max_rows = settings.h_s, settings.touch_m, settings.max_rows
+    push_out, push_max, slop = settings.push_out, settings.push_max_mps, settings.slop_m
+    collide_speed, slip_tol = settings.collide_speed_mps, settings.slip_tol_mps
+    friction_impulse, spec_depth = settings.friction_impulse, settings.spec_depth
+    reach = settings.reach_m
     n = a.shape[0]
     size = np.empty(n, np.int64)
     for i in range(starts.shape[0] - 1):
@@ -333,14 +360,8 @@ def contact_rows(a, b, point, normal, gap, order, starts, position, v_end, w_end
             r_a[i, q] = point[i, q] - position[ia, q]
             r_b[i, q] = point[i, q] - position[ib, q]
         # contact_velocities at the end-of-step free velocities
-        pax = v_end[ia, 0] + w_end[ia] * -r_a[i, 1]
-        pay = v_end[ia, 1] + w_end[ia] * r_a[i, 0]
-        pbx = v_end[ib, 0] + w_end[ib] * -r_b[i, 1]
-        pby = v_end[ib, 1] + w_end[ib] * r_b[i, 0]
-        rx, ry = pax - pbx, pay - pby
-        nx, ny = normal[i, 0], normal[i, 1]
-        vn_free[i] = rx * nx + ry * ny
-        vt_free[i] = rx * -ny + ry * nx
+        vn_free[i], vt_free[i] = _contact_velocity(i, ia, ib, normal[i, 0], normal[i, 1], r_a,
+                                                   r_b, v_end, w_end)
         if (2 * size[i] > max_rows or gap[i] <= touch
                 or gap[i] + 0.5 * h * vn_free[i] <= touch):
             keep[m] = i
@@ -389,13 +410,7 @@ def contact_rows(a, b, point, normal, gap, order, starts, position, v_end, w_end
         v_n[q] = vn_free[i]
         v_t[q] = vt_free[i]
         # contact_velocities at the pre-step velocities
-        pax = v_pre[ia, 0] + w_pre[ia] * -r_a[i, 1]
-        pay = v_pre[ia, 1] + w_pre[ia] * r_a[i, 0]
-        pbx = v_pre[ib, 0] + w_pre[ib] * -r_b[i, 1]
-        pby = v_pre[ib, 1] + w_pre[ib] * r_b[i, 0]
-        rx, ry = pax - pbx, pay - pby
-        vn_pre = rx * nx + ry * ny
-        vt_pre = rx * -ny + ry * nx
+        vn_pre, vt_pre = _contact_velocity(i, ia, ib, nx, ny, r_a, r_b, v_pre, w_pre)
         slip[q] = vt_pre
         g = gap[i]
         gap_min = min(gap_min, g)
@@ -495,6 +510,17 @@ def _pgs_records(a, b, ja, jb, ma, mb, step, diag, b_n, b_t, mu_lo, mu_hi, inv_m
 
 
 @inner(inline='always')
+def _pull(dv, R, k, ia, ib, col, w, fixed_a, fixed_b):
+    """Row ``k``'s velocity ``w + J dv`` summed left to right (``R[k, col:col + 6]`` hold J
+    for body a, then body b), leaving out the terms of a fixed body."""
+    if not fixed_a:
+        w = w + R[k, col] * dv[ia, 0] + R[k, col + 1] * dv[ia, 1] + R[k, col + 2] * dv[ia, 2]
+    if not fixed_b:
+        w = w + R[k, col + 3] * dv[ib, 0] + R[k, col + 4] * dv[ib, 1] + R[k, col + 5] * dv[ib, 2]
+    return w
+
+
+@inner(inline='always')
 def _push(dv, R, k, ia, ib, col, d):
     """Add the velocity change of an impulse change ``d`` on row ``k`` to both its bodies
     (``R[k, col:col + 6]`` hold M^-1 J^T for body a, then body b)."""
@@ -527,11 +553,7 @@ def _pgs_island(lo_c, hi_c, a, b, R, fixed_a, fixed_b, dv, box, x_n, x_t, sweeps
         change = 0.0
         for k in range(lo_c, hi_c):
             ia, ib = a[k], b[k]
-            w = R[k, _R_BN]
-            if not fixed_a[k]:
-                w = w + R[k, 0] * dv[ia, 0] + R[k, 1] * dv[ia, 1] + R[k, 2] * dv[ia, 2]
-            if not fixed_b[k]:
-                w = w + R[k, 3] * dv[ib, 0] + R[k, 4] * dv[ib, 1] + R[k, 5] * dv[ib, 2]
+            w = _pull(dv, R, k, ia, ib, 0, R[k, _R_BN], fixed_a[k], fixed_b[k])
             xo = x_n[k]
             xn = xo - R[k, _R_SN] * w
             if xn < 0.0:
@@ -550,11 +572,7 @@ def _pgs_island(lo_c, hi_c, a, b, R, fixed_a, fixed_b, dv, box, x_n, x_t, sweeps
                     _push(dv, R, k, ia, ib, 18, d)
                     x_t[k] = 0.0
             elif box[k]:
-                w = R[k, _R_BT]
-                if not fixed_a[k]:
-                    w = w + R[k, 12] * dv[ia, 0] + R[k, 13] * dv[ia, 1] + R[k, 14] * dv[ia, 2]
-                if not fixed_b[k]:
-                    w = w + R[k, 15] * dv[ib, 0] + R[k, 16] * dv[ib, 1] + R[k, 17] * dv[ib, 2]
+                w = _pull(dv, R, k, ia, ib, 12, R[k, _R_BT], fixed_a[k], fixed_b[k])
                 xo = x_t[k]
                 xt = xo - R[k, _R_ST] * w
                 xt = min(max(xt, -R[k, _R_LO] * xn), R[k, _R_HI] * xn)

@@ -629,13 +629,16 @@ class TimeStepper(StepperBase):
         distance a point can travel in the step (the contact search's margin)."""
         w, st = self.world, self.settings
         c = contacts
+        settings = K.RowSettings(
+            h_s=h, touch_m=st.touch_m, max_rows=st.direct_max_rows, push_out=st.push_out,
+            push_max_mps=st.push_max_mps, slop_m=st.slop_m,
+            collide_speed_mps=-2.0 * self._g * h, slip_tol_mps=slip_tol,
+            friction_impulse=bool(self.spec.friction_impulse),
+            spec_depth=st.speculative_depth * DEPTH_FRACTION, reach_m=reach_m)
         return K.contact_rows(
             c.body_a, c.body_b, c.point, c.normal, c.gap, groups[0], groups[1], mid.position,
             end.velocity, end.omega, state.velocity, state.omega, w.mu_static, w.mu_dynamic,
-            w.restitution, h, st.touch_m, st.direct_max_rows, st.push_out, st.push_max_mps,
-            st.slop_m, -2.0 * self._g * h, slip_tol, bool(self.spec.friction_impulse),
-            c.piece_a, c.piece_b, w.shapes.derived.piece_width,
-            st.speculative_depth * DEPTH_FRACTION, reach_m)
+            w.restitution, c.piece_a, c.piece_b, w.shapes.derived.piece_width, settings)
 
     def _contact_rows_reference(self, contacts, groups: tuple, state: State, mid: State,
                                 end: State, h: float, slip_tol: float, reach_m: float) -> tuple:
