@@ -1,6 +1,8 @@
 """Compiled port of Baraff-Dantzig pivoting (:mod:`feeder_sim.contact.lcp` holds the Python
-reference it is tested against) and the boxed-LCP residual both the port and the island
-solvers check their answers with.
+reference it is tested against), the boxed-LCP residual both the port and the island
+solvers check their answers with, and the contact LCP of :func:`.dynamics.assemble` built
+from the full 2k-row problem, with the row states of a solution and a solve on given row
+states (the event-driven method re-solves its modes that way).
 
 The port keeps the reference's sets, events and tolerances; it is flat on purpose (three
 functions): numba generates every callee again inside each caller, so deep call trees multiply
@@ -14,7 +16,7 @@ import numpy as np
 from feeder_sim._jit import inner, jit
 
 # ---------------------------------------------------------------------------------------------
-# island solvers: Dantzig for small islands, projected Gauss-Seidel for large ones
+# A x + b and the residual, shared with the island solvers (``_island_kernels``)
 
 
 @inner
@@ -61,7 +63,6 @@ def _dense_residual(A, b, x, w, nof, lo, hi):
     return max(r, 0.0)
 
 
-
 @jit
 def lcp_residual(A, b, x, normal_of, lo, hi):
     """:func:`feeder_sim.contact.lcp.residual` of ``x``: inf when ``A x + b`` is not finite."""
@@ -71,6 +72,7 @@ def lcp_residual(A, b, x, normal_of, lo, hi):
     if not np.isfinite(w.sum()):
         return np.inf
     return _dense_residual(A, b, x, w, normal_of, lo, hi)
+
 
 # ---------------------------------------------------------------------------------------------
 # Baraff-Dantzig pivoting: a port of ``lcp._Dantzig`` to numba with the same sets, events,
@@ -83,6 +85,7 @@ def lcp_residual(A, b, x, normal_of, lo, hi):
 _U, _C, _NC, _L, _H, _DEAD, _Z = 0, 1, 2, 3, 4, 5, 6
 (_DONE_C, _DONE_L, _DONE_H, _BAD, _C_NC, _NC_C, _C_L, _C_H, _SL_C,
  _Z_C) = 0, 1, 2, 3, 4, 5, 6, 7, 8, 9
+_ENTERS = (_C, _L, _H, _U, _NC, _C, _L, _H, _C, _C)     # ``lcp._ENTERS``
 _EPS_W = 1e-12
 _EPS_ROW = 1e-13      # ``lcp._Dantzig.EPS_ROW``: a normal row's own round-off scale
 _EPS_RATE = 1e-11
@@ -553,25 +556,13 @@ def dantzig(A, b, nof, lo, hi, max_pivots):
                 prev_i, prev_code = i, ev
                 for r_ in range(m):
                     x[r_] += smin * dx[r_]
-                if ev == _DONE_C:
-                    st[d] = _C
-                elif ev == _DONE_L:
-                    st[d] = _L
-                elif ev == _DONE_H:
-                    st[d] = _H
-                elif ev == _C_NC:
-                    st[i] = _NC
+                st[d if ev <= _DONE_H else i] = _ENTERS[ev]
+                if ev == _C_NC:
                     x[i] = 0.0
                     for k in range(m):
                         if nof[k] == i and st[k] != _DEAD:
                             st[k] = _U
                             x[k] = 0.0
-                elif ev == _NC_C or ev == _SL_C or ev == _Z_C:
-                    st[i] = _C
-                elif ev == _C_L:
-                    st[i] = _L
-                else:
-                    st[i] = _H
                 # sync: re-impose the x fixed by each row's set, then refresh w
                 for r_ in range(m):
                     s = st[r_]

@@ -262,6 +262,8 @@ _U, _C, _NC, _L, _H, _DEAD, _Z = 0, 1, 2, 3, 4, 5, 6
 # row reaches its lower / upper bound; a slaved friction row's w crosses zero; a deferred row's
 # w starts to move (it is no longer dependent)
 _DONE_C, _DONE_L, _DONE_H, _BAD, _C_NC, _NC_C, _C_L, _C_H, _SL_C, _Z_C = range(10)
+# the set an event moves its row into (the driving row for _DONE_*; _BAD never moves a row)
+_ENTERS = (_C, _L, _H, _U, _NC, _C, _L, _H, _C, _C)
 
 
 class _Abort(Exception):
@@ -522,28 +524,14 @@ class _Dantzig:
             prev = (i, code)
             for r in range(m):
                 x[r] += smin * dx[r]
-            if code == _DONE_C:
-                st[d] = _C
-            elif code == _DONE_L:
-                st[d] = _L
-            elif code == _DONE_H:
-                st[d] = _H
-            elif code == _C_NC:
-                st[i] = _NC
+            st[d if code <= _DONE_H else i] = _ENTERS[code]
+            if code == _C_NC:
                 x[i] = 0.0
                 # an open contact has no friction; its rows are treated again if it closes
                 for k in self.frics[i]:
                     if st[k] != _DEAD:
                         st[k] = _U
                         x[k] = 0.0
-            elif code == _NC_C:
-                st[i] = _C
-            elif code == _C_L:
-                st[i] = _L
-            elif code == _C_H:
-                st[i] = _H
-            else:
-                st[i] = _C
             self._sync(d)
             if prio == 0:
                 return
