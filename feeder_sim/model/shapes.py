@@ -10,7 +10,7 @@ The contact stage (:mod:`feeder_sim.contact.collision`) reads it; the world owns
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from functools import cached_property
 import math
 
@@ -51,6 +51,13 @@ class ShapeTopology:
     cover_hi: np.ndarray  # (c,) end parameter of an internal portion
     vertex_canon: np.ndarray  # (V,) lowest global index of a coincident vertex of the same body
     max_edge_length: float
+
+    def __post_init__(self) -> None:
+        # read-only: one topology is shared by every caller of the shape set
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, np.ndarray):
+                _frozen(value)
 
 
 @dataclass(frozen=True, eq=False)
@@ -230,19 +237,10 @@ def _build_topology(s: ShapeSet) -> ShapeTopology:
     np.add.at(cover_start, cover_edge + 1, 1)
     cover_start = np.cumsum(cover_start)
     return ShapeTopology(
-        vertex_piece=_frozen(vertex_piece),
-        vertex_body=_frozen(vertex_body),
-        next_vertex=_frozen(next_vertex),
-        prev_vertex=_frozen(prev_vertex),
-        piece_size=_frozen(size),
-        edge_length=_frozen(length),
-        piece_width=_frozen(width),
-        vertex_active=_frozen(active),
-        edge_internal=_frozen(internal),
-        cover_start=_frozen(cover_start),
-        cover_lo=_frozen(cover_lo),
-        cover_hi=_frozen(cover_hi),
-        vertex_canon=_frozen(canon),
+        vertex_piece=vertex_piece, vertex_body=vertex_body, next_vertex=next_vertex,
+        prev_vertex=prev_vertex, piece_size=size, edge_length=length, piece_width=width,
+        vertex_active=active, edge_internal=internal, cover_start=cover_start,
+        cover_lo=cover_lo, cover_hi=cover_hi, vertex_canon=canon,
         max_edge_length=float(length.max()) if n_v else 0.0,
     )
 
