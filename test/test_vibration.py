@@ -2,10 +2,11 @@
 
 import math
 
+import numba
 import numpy as np
 import pytest
 
-from feeder_sim.model.vibration import Drive
+from feeder_sim.model.vibration import Drive, drive_segments, segment_motion
 
 
 def test_motion_is_the_given_sinusoid():
@@ -80,3 +81,30 @@ def test_a_repeated_setpoint_changes_nothing(method):
     assert np.array_equal(repeated.state.position, plain.state.position)
     assert np.array_equal(repeated.state.velocity, plain.state.velocity)
     assert repeated.stats.events == plain.stats.events
+
+
+@numba.njit
+def _table_motion(t, drives, row):
+    return segment_motion(t, drives, row)
+
+
+def test_drive_table_rows_move_as_their_drives_across_commands_and_blends():
+    # The compiled steppers' drive table is the same model as Drive.motion: to round-off
+    # (1e-12 of the amplitude, of A w and of A w^2) before, during and after a command blend.
+    drives = [Drive(np.array([1.0, 0.0]), 1e-3, 50.0, 0.3),
+              Drive(np.array([0.6, 0.8]), 0.5e-3, 120.0)]
+    base = np.array([[0.1, 0.2], [-0.3, 0.0]])
+    drives[0].command(0.0123, 2e-4, 60.0)       # smaller than the displacement: a blend
+    drives[1].command(0.004, 1e-3, 30.0)        # re-phased, no blend
+    for t in np.linspace(0.0124, 0.05, 41):
+        table = drive_segments(drives, base, t)
+        assert table.base_m.tolist() == base.tolist()
+        for row, drive in enumerate(drives):
+            ref = drive.motion(t)
+            got = _table_motion(t, table, row)
+            w = 2 * math.pi * drive.frequency_hz
+            scale = max(drive.amplitude_m, 1e-3)
+            for x, y, s in zip(got, ref, (scale, scale * w, scale * w * w), strict=True):
+                assert x == pytest.approx(y, abs=1e-12 * s)
+    assert drive_segments(drives, base, 0.013).blending(0.013)
+    assert not drive_segments(drives, base, 0.04).blending(0.04)

@@ -11,10 +11,14 @@ would when a real drive is switched: contacts see that as an impact.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 import math
+from typing import NamedTuple
 
 import numpy as np
+
+from feeder_sim._jit import inner
 
 TWO_PI = 2.0 * math.pi
 
@@ -44,7 +48,7 @@ class Drive:
         self._initial = (self.amplitude_m, self.frequency_hz, self.phase_rad)
         self.reset()
 
-    def _segment(self, t: float) -> _Segment:
+    def segment(self, t: float) -> _Segment:
         # Commands arrive in time order, so the active segment is nearly always the last one.
         for seg in reversed(self._segments):
             if t >= seg.start_s:
@@ -52,8 +56,10 @@ class Drive:
         return self._segments[0]
 
     def motion(self, t: float) -> tuple[float, float, float]:
-        """Displacement (m), velocity (m/s) and acceleration (m/s^2) along ``direction``."""
-        seg = self._segment(t)
+        """Displacement (m), velocity (m/s) and acceleration (m/s^2) along ``direction``.
+
+        The reference of :func:`segment_motion`, which compiled steppers call."""
+        seg = self.segment(t)
         tau = t - seg.start_s
         omega = TWO_PI * seg.frequency_hz
         phi = seg.phase_rad + omega * tau
@@ -70,7 +76,7 @@ class Drive:
 
     def next_change_after(self, t: float) -> float:
         """The next time after ``t`` at which the motion stops being smooth (end of a blend)."""
-        seg = self._segment(t)
+        seg = self.segment(t)
         end = seg.start_s + seg.blend_s
         return end if seg.offset_m and end > t else math.inf
 
@@ -81,7 +87,7 @@ class Drive:
             raise ValueError('amplitude_m and frequency_hz must be finite and >= 0, got '
                              f'{amplitude_m!r}, {frequency_hz!r}')
         d, v, _ = self.motion(t)
-        old = self._segment(t)
+        old = self.segment(t)
         old_phase = old.phase_rad + TWO_PI * old.frequency_hz * (t - old.start_s)
         offset = 0.0
         if amplitude_m > 0 and abs(d) <= amplitude_m:
@@ -104,6 +110,72 @@ class Drive:
         amplitude_m, frequency_hz, phase_rad = self._initial
         self._segments = [_Segment(0.0, amplitude_m, frequency_hz, phase_rad)]
         self.amplitude_m, self.frequency_hz = amplitude_m, frequency_hz
+
+
+class DriveSegments(NamedTuple):
+    """The drive table: the sinusoid each drive follows from a time on, one row per drive.
+
+    What compiled steppers take instead of :class:`Drive` objects (:func:`drive_segments`
+    builds it, :func:`segment_motion` evaluates a row as :meth:`Drive.motion` does)."""
+
+    direction: np.ndarray      # (nd, 2) unit vector of the displacement, world frame
+    base_m: np.ndarray         # (nd, 2) position of the driven body at zero displacement
+    start_s: np.ndarray        # (nd,) start of the segment
+    amplitude_m: np.ndarray    # (nd,)
+    omega_rad_s: np.ndarray    # (nd,) 2 pi f
+    phase_rad: np.ndarray      # (nd,) phase at start_s
+    offset_m: np.ndarray       # (nd,) mismatch c(start_s) of a command, fading over blend_s
+    blend_s: np.ndarray        # (nd,)
+
+    def blending(self, t: float) -> bool:
+        """Whether a drive is still blending out a command's mismatch at ``t`` (s)."""
+        return bool(np.any((self.offset_m != 0.0) & (self.start_s + self.blend_s > t)))
+
+    def stroke_m(self) -> np.ndarray:
+        """(nd,) length of the segment a driven body never leaves (m)."""
+        return 2.0 * self.amplitude_m + np.abs(self.offset_m)
+
+    def speed_bound_mps(self) -> float:
+        """A bound on every drive's speed over its segment (m/s)."""
+        blend = np.divide(np.pi * np.abs(self.offset_m), self.blend_s,
+                          out=np.zeros_like(self.blend_s), where=self.blend_s > 0)
+        return float(np.max(self.amplitude_m * self.omega_rad_s + blend, initial=0.0))
+
+
+def drive_segments(drives: Sequence[Drive], base_m: np.ndarray, t: float) -> DriveSegments:
+    """The drive table of ``drives`` (bodies at ``base_m``, (nd, 2)) from time ``t`` on (s)."""
+    segs = [drive.segment(t) for drive in drives]
+    nd = len(segs)
+    return DriveSegments(
+        np.array([drive.direction for drive in drives], dtype=float).reshape(nd, 2),
+        np.array(base_m, dtype=float).reshape(nd, 2),
+        np.array([s.start_s for s in segs], dtype=float),
+        np.array([s.amplitude_m for s in segs], dtype=float),
+        np.array([TWO_PI * s.frequency_hz for s in segs], dtype=float),
+        np.array([s.phase_rad for s in segs], dtype=float),
+        np.array([s.offset_m for s in segs], dtype=float),
+        np.array([s.blend_s for s in segs], dtype=float))
+
+
+@inner
+def segment_motion(t, drives, d):
+    """Displacement (m), velocity (m/s) and acceleration (m/s^2) of row ``d`` of the drive
+    table at time ``t`` (s), as :meth:`Drive.motion`."""
+    tau = t - drives.start_s[d]
+    omega = drives.omega_rad_s[d]
+    amplitude = drives.amplitude_m[d]
+    phi = drives.phase_rad[d] + omega * tau
+    s = math.sin(phi)
+    disp = amplitude * s
+    v = amplitude * omega * math.cos(phi)
+    a = -amplitude * omega * omega * s
+    offset, blend = drives.offset_m[d], drives.blend_s[d]
+    if offset != 0.0 and tau < blend:
+        k = math.pi / blend
+        disp += 0.5 * offset * (1.0 + math.cos(k * tau))
+        v -= 0.5 * offset * k * math.sin(k * tau)
+        a -= 0.5 * offset * k * k * math.cos(k * tau)
+    return disp, v, a
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ from feeder_sim.model.geometry import mass_properties
 from feeder_sim.model.scene import BODY_TYPES as scene_body_types
 from feeder_sim.model.scene import Scene
 from feeder_sim.model.shapes import ShapeSet
-from feeder_sim.model.vibration import Drive
+from feeder_sim.model.vibration import Drive, drive_segments, DriveSegments
 
 # body kinds, as codes in World.body_type (the names and their order are scene.BODY_TYPES')
 BODY_TYPES = {name: code for code, name in enumerate(scene_body_types)}
@@ -159,6 +159,11 @@ class World:
     def driven(self) -> np.ndarray:
         """Indices of bodies that have a vibration drive."""
         return np.array([i for i, d in enumerate(self.drives) if d is not None], dtype=int)
+
+    def drive_segments(self, t: float) -> DriveSegments:
+        """The drive table from time ``t`` (s) on, one row per body of :attr:`driven`."""
+        driven = self.driven
+        return drive_segments([self.drives[i] for i in driven], self.base_position[driven], t)
 
     @cached_property
     def radius(self) -> np.ndarray:

@@ -109,6 +109,7 @@ from feeder_sim._jit import jit
 from feeder_sim.contact.candidates import corner_piece_candidates, world_point
 from feeder_sim.contact.collision import Contacts
 from feeder_sim.contact.dynamics import contact_set
+from feeder_sim.model.vibration import segment_motion
 from feeder_sim.model.world import DRIVEN, FIXED, MOVING, State
 from feeder_sim.stepping.protocol import StepContacts, StepperBase
 
@@ -132,10 +133,6 @@ COUNTER_NAMES = ('steps', 'collisions', 'micro_collisions', 'sweeps', 'most_swee
                  'sweep_cap_hits', 'toi_cuts', 'toi_give_ups', 'jams', 'sticks', 'reversals')
 # float outputs of the kernel
 _F_MAX_PEN, _F_CAP_T, _F_GIVE_UP_T = 0, 1, 2
-
-# drive table columns (see vibration.Drive.motion)
-_D_DIR, _D_BASE, _D_START, _D_AMP, _D_OMEGA, _D_PHASE, _D_OFFSET, _D_BLEND = 0, 2, 4, 5, 6, 7, 8, 9
-_D_COLS = 10
 
 
 @dataclass
@@ -331,25 +328,6 @@ def collide(K: np.ndarray, u0: np.ndarray, mu: float, e: float, law: str = 'stro
 
 # ------------------------------------------------------------------------ kernel geometry
 @jit
-def _drive_motion(t, row):
-    """Displacement, velocity and acceleration of a drive at t (as vibration.Drive.motion)."""
-    tau = t - row[_D_START]
-    omega = row[_D_OMEGA]
-    phi = row[_D_PHASE] + omega * tau
-    s = math.sin(phi)
-    d = row[_D_AMP] * s
-    v = row[_D_AMP] * omega * math.cos(phi)
-    a = -row[_D_AMP] * omega * omega * s
-    blend = row[_D_BLEND]
-    if row[_D_OFFSET] != 0.0 and tau < blend:
-        k = math.pi / blend
-        d += 0.5 * row[_D_OFFSET] * (1.0 + math.cos(k * tau))
-        v -= 0.5 * row[_D_OFFSET] * k * math.sin(k * tau)
-        a -= 0.5 * row[_D_OFFSET] * k * k * math.cos(k * tau)
-    return d, v, a
-
-
-@jit
 def _poses(t1, h, kind, drive_row, drives, gravity, pos, ang, vel, om, pos1, ang1, vel1, om1):
     """Free flight from t1 - h to t1: ballistic dynamic bodies, driven bodies on their drives."""
     for i in range(kind.shape[0]):
@@ -361,11 +339,11 @@ def _poses(t1, h, kind, drive_row, drives, gravity, pos, ang, vel, om, pos1, ang
             ang1[i] = ang[i] + h * om[i]
             om1[i] = om[i]
         elif k == DRIVEN:
-            row = drives[drive_row[i]]
-            d, v, _ = _drive_motion(t1, row)
+            row = drive_row[i]
+            d, v, _ = segment_motion(t1, drives, row)
             for j in range(2):
-                pos1[i, j] = row[_D_BASE + j] + d * row[_D_DIR + j]
-                vel1[i, j] = v * row[_D_DIR + j]
+                pos1[i, j] = drives.base_m[row, j] + d * drives.direction[row, j]
+                vel1[i, j] = v * drives.direction[row, j]
             ang1[i] = ang[i]
             om1[i] = om[i]
         else:
@@ -708,29 +686,6 @@ class ImpulseBased(StepperBase):
         """Forget the candidates (after a vibration command or a reset)."""
         self._cand = None
 
-    # ------------------------------------------------------------------ drives
-    def _drive_table(self, t: float) -> tuple[np.ndarray, float]:
-        """Parameters of every drive's current segment and a bound on the drives' speeds."""
-        w = self.world
-        table = np.zeros((len(w.driven), _D_COLS))
-        speed = 0.0
-        for row, i in enumerate(w.driven):
-            drive = w.drives[i]
-            seg = drive._segment(t)   # the sinusoid the drive follows from t on
-            omega = 2.0 * math.pi * seg.frequency_hz
-            table[row, _D_DIR:_D_DIR + 2] = drive.direction
-            table[row, _D_BASE:_D_BASE + 2] = w.base_position[i]
-            table[row, [_D_START, _D_AMP, _D_OMEGA, _D_PHASE, _D_OFFSET, _D_BLEND]] = (
-                seg.start_s, seg.amplitude_m, omega, seg.phase_rad, seg.offset_m, seg.blend_s)
-            d, v, _ = _drive_motion(t, table[row])
-            d_ref, v_ref, _ = drive.motion(t)
-            scale = max(seg.amplitude_m, abs(seg.offset_m), 1e-12)
-            if abs(d - d_ref) > 1e-9 * scale or abs(v - v_ref) > 1e-9 * scale * max(omega, 1.0):
-                raise RuntimeError('impulse_based: drive model differs from Drive.motion')
-            blend = math.pi * abs(seg.offset_m) / seg.blend_s if seg.blend_s > 0 else 0.0
-            speed = max(speed, seg.amplitude_m * omega + blend)
-        return table, speed
-
     # ------------------------------------------------------------------ candidates
     def _find_candidates(self, state: State, stroke: np.ndarray) -> _Candidates:
         """Active corners against pieces of other bodies whose boxes are within the margin;
@@ -766,10 +721,10 @@ class ImpulseBased(StepperBase):
         out: list[StepContacts] = []
         if not state.t < t_end:
             return out
-        table, drive_speed = self._drive_table(state.t)
+        drives = w.drive_segments(state.t)
+        drive_speed = drives.speed_bound_mps()
         stroke = np.zeros(w.n)
-        for row, i in enumerate(w.driven):
-            stroke[i] = 2.0 * table[row, _D_AMP] + abs(table[row, _D_OFFSET])
+        stroke[w.driven] = drives.stroke_m()
         if self._cand is not None and np.any(stroke > self._cand.stroke):
             self._cand = None      # a drive command widened the stroke
         law = LAWS[self.spec.restitution_law]
@@ -789,7 +744,7 @@ class ImpulseBased(StepperBase):
             acc_t = np.zeros((nc, self._max_piece))
             acc_geo = np.zeros((nc, self._max_piece, 5))
             t, code = _run(
-                t, t_end, pos, ang, vel, om, self._kind, self._drive_row, table, drive_speed,
+                t, t_end, pos, ang, vel, om, self._kind, self._drive_row, drives, drive_speed,
                 w.gravity, w.inv_mass, w.inv_inertia, self._radius, *cand.arrays, self._verts,
                 self._normals, self._internal, cand.anchor_pos, cand.anchor_ang, self.margin_m,
                 self._width, self.max_step_s, self.envelope_m, self.penetration_m,

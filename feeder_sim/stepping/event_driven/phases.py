@@ -62,19 +62,19 @@ class DriveModels:
     def at(self, t: float) -> DriveModel | None:
         """The drive model from ``t`` on, or None while a drive blends."""
         w = self.world
-        key = tuple((w.drives[i].amplitude_m, w.drives[i].frequency_hz) for i in w.driven)
-        if any(w.drives[i].next_change_after(t) < math.inf for i in w.driven):
+        segs = w.drive_segments(t)
+        if segs.blending(t):
             return None   # a command blend: not a plain sinusoid
+        key = tuple(zip(segs.amplitude_m.tolist(), segs.omega_rad_s.tolist()))
         if self.model is not None and self.key == key:
             return self.model
         n = w.n
         kind = np.where(w.dynamic, MOVING, FIXED).astype(np.int64)
         index = np.full(n, -1, dtype=np.int64)
         u, base, amp, omega, phase = [], [], [], [], []
-        for i in w.driven:
-            drive = w.drives[i]
-            d, v, _ = drive.motion(t)
-            a, om = drive.amplitude_m, 2.0 * math.pi * drive.frequency_hz
+        for row, i in enumerate(w.driven):
+            d, v, _ = w.drives[i].motion(t)
+            a, om = segs.amplitude_m[row], segs.omega_rad_s[row]
             if a == 0.0 or om == 0.0:
                 continue      # at rest
             # The drive is A sin(phase + omega (t - t_ref)) from its current phase on.
@@ -82,8 +82,8 @@ class DriveModels:
             if abs(math.hypot(sn, cs) - 1.0) > 1e-9:
                 return None
             kind[i], index[i] = DRIVEN, len(amp)
-            u.append(drive.direction)
-            base.append(w.base_position[i])
+            u.append(segs.direction[row])
+            base.append(segs.base_m[row])
             amp.append(a)
             omega.append(om)
             phase.append(math.atan2(sn, cs))
