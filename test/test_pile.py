@@ -21,8 +21,10 @@ from feeder_sim.simulator import _ImpulseLog, ContactReport, Simulator
 import feeder_sim.stepping.time_stepping as TS
 
 
-def pile(n_parts, seed=1, materials=False, friction_impulse=True):
-    """``n_parts`` 20 x 10 mm boxes in staggered rows above a walled 0.4 m track (50 Hz)."""
+def pile(n_parts, seed=1, materials=False, friction_impulse=True, compiled=False):
+    """``n_parts`` 20 x 10 mm boxes in staggered rows above a walled 0.4 m track (50 Hz),
+    stepped by the Python reference step (the stages these tests hold to their references)
+    or, with ``compiled``, by the compiled whole step."""
     length = 0.4
     scene = conveyor(psi=math.radians(30.0), mu=0.5, theta=0.0, gamma=1.2, frequency_hz=50.0,
                      method='time_stepping', time_step=1e-3, n_parts=n_parts, walls=True,
@@ -43,7 +45,7 @@ def pile(n_parts, seed=1, materials=False, friction_impulse=True):
             body['mu_static'] = float(rng.uniform(0.3, 0.7))
             body['mu_dynamic'] = 0.7 * body['mu_static']
             body['restitution'] = float(rng.choice([0.0, 0.3]))
-    return Simulator(build(scene))
+    return Simulator(build(scene), settings=TS.TimeStepSettings(compiled=compiled))
 
 
 def same_bits(x, y):
@@ -427,3 +429,35 @@ def test_projection_keeps_a_tilted_stack_out_of_itself():
             worst = max(worst, _deepest_overlap_between(sim, cups))
     # without those rows: 0.13-0.19 mm, every other step
     assert worst < 1e-8, worst
+
+
+@pytest.mark.parametrize('materials, friction_impulse, direct_max_rows', [
+    (False, True, 48), (True, False, 48), (True, True, 0)])
+def test_compiled_whole_step_gives_the_bits_of_the_reference_step(materials, friction_impulse,
+                                                                  direct_max_rows):
+    """Frames of the compiled whole step against the Python step, bit for bit: states,
+    every counter and the contact reports. Restitution (half the parts) sends steps back to
+    the Python step mid-frame; tiny report buffers make the kernel ask for larger ones."""
+    runs = []
+    for compiled in (True, False):
+        sim = pile(24, materials=materials, friction_impulse=friction_impulse,
+                   compiled=compiled)
+        sim._stepper.settings.direct_max_rows = direct_max_rows
+        if compiled:
+            sim._stepper._reports = TS.TK.new_reports(1)
+        frames = []
+        for k in range(1, 31):
+            sim.advance(k * 0.01)
+            s, rep = sim.state, sim.take_contacts()
+            frames.append([s.position.copy(), s.angle.copy(), s.velocity.copy(),
+                           s.omega.copy(), rep.point, rep.normal, rep.normal_impulse,
+                           rep.tangent_impulse, rep.body_a, rep.body_b])
+        runs.append((frames, sim.stats.as_dict()))
+    (got, got_stats), (ref, ref_stats) = runs
+    for k, (x, y) in enumerate(zip(got, ref, strict=True)):
+        for i, (u, v) in enumerate(zip(x, y, strict=True)):
+            assert same_bits(u, v), f'frame {k}, field {i}'
+    assert got_stats == ref_stats
+    assert ref_stats['lcp_solves'] > 500 and ref_stats['steps'] == 300
+    if direct_max_rows == 0:
+        assert ref_stats['pgs_solves'] > 100

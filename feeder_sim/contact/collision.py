@@ -95,6 +95,7 @@ __all__ = [
     "ANGLE_TOL",
     "DEPTH_FRACTION",
     "PARAM_TOL",
+    "TIE_REL",
     "Contacts",
     "body_bounds",
     "candidate_pairs",
@@ -105,7 +106,7 @@ __all__ = [
 #: Default ``depth`` = DEPTH_FRACTION * the smaller minimum width of the two pieces.
 DEPTH_FRACTION = 0.25
 #: Tie tolerance for the least-penetrated-face search, relative to the coordinate scale.
-_TIE_REL = 1e3 * np.finfo(float).eps
+TIE_REL = 1e3 * np.finfo(float).eps
 
 _INT = np.intp
 
@@ -305,7 +306,7 @@ def find_contacts(shapes: ShapeSet, position: np.ndarray, angle: np.ndarray,
     coord = np.abs(position).max(axis=1)
     tol = NarrowPhaseTolerances(
         bp_margin_m=bp_margin, margin_m=margin, depth_m=-1.0 if depth is None else float(depth),
-        depth_fraction=DEPTH_FRACTION, tie_rel=_TIE_REL, param_tol=float(param_tol),
+        depth_fraction=DEPTH_FRACTION, tie_rel=TIE_REL, param_tol=float(param_tol),
         angle_tol=float(angle_tol))
     vert, edge, gap, t, _ = narrow_phase(
         w, nw, lo, hi, shapes.piece_start, body, take, dyn, topo.piece_width, coord,

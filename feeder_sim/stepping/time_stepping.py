@@ -77,13 +77,17 @@ import numpy as np
 
 from feeder_sim.contact import _island_kernels as K
 from feeder_sim.contact import lcp
+from feeder_sim.contact._collision_kernels import NarrowPhaseTolerances
 from feeder_sim.contact._island_kernels import island_groups
 from feeder_sim.contact.collision import (
+    ANGLE_TOL,
     CONTACT_FIELDS,
     Contacts,
     DEPTH_FRACTION,
     evaluate_gaps,
     find_contacts,
+    PARAM_TOL,
+    TIE_REL,
 )
 from feeder_sim.contact.dynamics import (
     assemble,
@@ -96,6 +100,7 @@ from feeder_sim.contact.dynamics import (
     SolverStats,
 )
 from feeder_sim.model.world import State, World
+from feeder_sim.stepping import _time_stepping_kernels as TK
 from feeder_sim.stepping.protocol import StepContacts, StepperBase
 
 
@@ -126,6 +131,8 @@ class TimeStepSettings:
     pgs_tol_mps: float = 1e-3      # velocity residual (m/s) the PGS path must reach
     pgs_max_sweeps: int = 200
     pgs_check: int = 1             # PGS sweeps between convergence tests
+    compiled: bool = True          # whole steps in _time_stepping_kernels.advance; False: the
+    #                                Python reference, step by step
     pgs_omega: float = 1.3         # over-relaxation of the large-island PGS (24 instead of
     #                                33 sweeps per solve in the 200-part pile, same result)
 
@@ -257,6 +264,45 @@ class TimeStepper(StepperBase):
         # step: its Newton rows bounce the speed it came in with
         self._approach: dict[tuple[int, int], np.ndarray] = {}
         self._geo: _IslandGeometry | None = None
+        self._compiled = self._compiled_world()
+        self._reports = TK.new_reports(256)
+
+    def _compiled_world(self) -> tuple[TK.StepBodies, TK.StepShapes]:
+        """The world's constants as the compiled step takes them."""
+        w = self.world
+        shapes, topo = w.shapes, w.shapes.derived
+        def floats(x: np.ndarray) -> np.ndarray:
+            return np.ascontiguousarray(x, dtype=float)
+
+        bodies = TK.StepBodies(
+            np.ascontiguousarray(self._dyn, dtype=bool), self._dyn_idx.astype(np.int64),
+            self._driven.astype(np.int64), floats(w.inv_mass), floats(w.inv_inertia),
+            floats(self._radius), floats(w.mu_static), floats(w.mu_dynamic),
+            floats(w.restitution), floats(w.gravity), self._g)
+        n_piece_bodies = int(shapes.piece_body.max()) + 1 if len(shapes.piece_body) else 0
+        shape_args = TK.StepShapes(
+            shapes.vertices, shapes.normals, shapes.piece_start, shapes.piece_body,
+            shapes.radius, topo.vertex_body, topo.vertex_piece, topo.next_vertex,
+            topo.prev_vertex, topo.edge_length, topo.piece_width, topo.vertex_active,
+            topo.edge_internal, topo.cover_start, topo.cover_lo, topo.cover_hi,
+            topo.vertex_canon, n_piece_bodies)
+        return bodies, shape_args
+
+    def _compiled_settings(self) -> TK.StepSettings:
+        """The settings as the compiled step takes them (read at every call: tests and
+        studies change settings on a live stepper)."""
+        st, spec = self.settings, self.spec
+        narrow = NarrowPhaseTolerances(
+            bp_margin_m=2.0 * PARAM_TOL * self.world.shapes.derived.max_edge_length,
+            margin_m=0.0, depth_m=-1.0, depth_fraction=DEPTH_FRACTION, tie_rel=TIE_REL,
+            param_tol=float(PARAM_TOL), angle_tol=float(ANGLE_TOL))
+        return TK.StepSettings(
+            float(spec.time_step), float(st.touch_m), float(st.projection_slop_m),
+            float(st.projection_reach), float(st.slop_m), float(st.push_out),
+            float(st.push_max_mps), st.speculative_depth * DEPTH_FRACTION,
+            float(st.slip_tol_mps), float(st.lcp_tol), int(st.direct_max_rows),
+            float(st.pgs_tol_mps), int(st.pgs_max_sweeps), int(st.pgs_check),
+            float(st.pgs_omega), bool(spec.friction_impulse), narrow)
 
     def margin(self, state: State, h: float) -> tuple[float, float]:
         """Distances a vertex can close on an edge in one step (m): ``(search, base)``.
@@ -295,14 +341,66 @@ class TimeStepper(StepperBase):
         """Step ``state`` to ``t_end`` (s) by ``spec.time_step``, the last step shortened to land
         on ``t_end``; the contacts of every step that had any."""
         h = self.spec.time_step
-        reports = []
+        reports: list[StepContacts] = []
         # A remainder below 1e-9 steps is round-off of a frame length that is a multiple of the
         # step: it costs no extra short step.
         while t_end - state.t > 1e-9 * h:
+            if self.settings.compiled and not self._approach:
+                code = self._advance_compiled(state, t_end, reports)
+                if code == TK.DONE:
+                    break
+                if code == TK.GROW:
+                    self._reports = TK.new_reports(2 * len(self._reports.gap))
+                    continue
+            # the reference step: where the kernel hands a step back, or not compiled
             report = self.step(state, min(h, t_end - state.t))
             if report is not None:
                 reports.append(report)
         return reports
+
+    def _advance_compiled(self, state: State, t_end: float,
+                          reports: list[StepContacts]) -> int:
+        """Steps of ``_time_stepping_kernels.advance`` towards ``t_end``; their contacts are
+        appended to ``reports`` as one entry (rows in step order). Returns the kernel's code."""
+        stats, rep = self.stats, self._reports
+        rep.counts[:] = 0
+        ints = np.zeros(len(TK.INT_COUNTERS), np.int64)
+        floats = np.array([getattr(stats, f) for f in TK.FLOAT_MAXIMA], dtype=float)
+        msgs = np.zeros((max(0, 20 - len(stats.messages)), 4))
+        n_msgs = np.zeros(1, np.int64)
+        warm = TK.Warm(self._warm.keys, self._warm.p_n, self._warm.p_t)
+        bodies, shapes = self._compiled
+        settings = self._compiled_settings()
+        code, t, warm = TK.advance(
+            state.t, t_end, state.position, state.angle, state.velocity, state.omega, bodies,
+            shapes, self.world.drive_segments(state.t), settings, warm, ints, floats, rep, msgs,
+            n_msgs)
+        state.t = t
+        self._warm.keys, self._warm.p_n, self._warm.p_t = warm
+        for name, value in zip(TK.INT_COUNTERS, ints.tolist(), strict=True):
+            if name == 'max_lcp_rows':
+                stats.max_lcp_rows = max(stats.max_lcp_rows, value)
+            else:
+                setattr(stats, name, getattr(stats, name) + value)
+        for name, value in zip(TK.FLOAT_MAXIMA, floats.tolist(), strict=True):
+            setattr(stats, name, value)
+        for vres, res, sweeps, rows in msgs[:n_msgs[0]].tolist():
+            stats.messages.append(f'pgs: velocity residual {vres:.3g} m/s (lcp residual '
+                                  f'{res:.3g}) after {int(sweeps)} sweeps ({int(rows)} rows)')
+        rows = int(rep.counts[0])
+        if rows:
+            r = slice(0, rows)
+            contacts = Contacts(rep.body_a[r].copy(), rep.piece_a[r].copy(),
+                                rep.vertex_a[r].copy(), rep.body_b[r].copy(),
+                                rep.piece_b[r].copy(), rep.edge_b[r].copy(),
+                                rep.point[r].copy(), rep.normal[r].copy(), rep.gap[r].copy(),
+                                rep.edge_param[r].copy())
+            cs = ContactSet(contacts, rep.tangent[r].copy(), rep.r_a[r].copy(),
+                            rep.r_b[r].copy(), rep.mu_static[r].copy(),
+                            rep.mu_dynamic[r].copy(), rep.restitution[r].copy())
+            reports.append(StepContacts(cs, rep.normal_impulse[r].copy(),
+                                        rep.tangent_impulse[r].copy()))
+        return code
 
     def reset(self) -> None:
         """Nothing here depends on the prescribed motion beyond the current step."""

@@ -1,0 +1,833 @@
+"""``time_stepping``'s whole step, compiled: many steps per call, no Python per step.
+
+:func:`advance` is ``TimeStepper.step`` (drift, drives, contact search, rows, islands, the
+small islands' Baraff-Dantzig, the piles' PGS with Kawachi's second pass, impulses, drift, the
+position projection) with the same operations in the same order, so a frame gives the bits of
+the Python path, which stays the reference it is tested against (``test/test_fingerprint.py``
+runs every shipped scene through this kernel against states recorded from the Python path).
+
+A step the kernel does not take itself is handed back before anything of it is written:
+``advance`` returns ``REFERENCE`` and ``TimeStepper`` takes that one step in Python, then
+calls the kernel again. That is a step where a contact has restitution (the approach-speed
+memory of speculative rows lives in Python), where the compiled Dantzig misses ``lcp_tol``
+(the reference's fallback ladder solves it, counted in ``stats.fallbacks`` there), or where
+a step's contacts would overflow the report buffers (``GROW``: they are doubled).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from feeder_sim._jit import inner, jit
+from feeder_sim.contact._collision_kernels import (
+    _argsort,
+    clean_contacts,
+    narrow_phase,
+    NarrowPhaseTolerances,
+)
+from feeder_sim.contact._island_kernels import (
+    apply_impulses,
+    contact_rows,
+    drift,
+    feature_gaps,
+    island_groups,
+    RowSettings,
+    solve_pgs,
+    solve_small,
+    speed_bounds,
+)
+from feeder_sim.model.vibration import segment_motion
+
+# what advance returns
+DONE, REFERENCE, GROW = 0, 1, 2
+
+# integer counters (``ints``), in SolverStats' names
+(I_STEPS, I_LCP_SOLVES, I_TRIVIAL, I_PIVOTS, I_UNCONVERGED, I_IMPACTS, I_ISLANDS, I_PGS,
+ I_LCP_ROWS, I_MAX_LCP_ROWS) = range(10)
+INT_COUNTERS = ('steps', 'lcp_solves', 'trivial_solves', 'pivots', 'unconverged', 'impacts',
+                'islands', 'pgs_solves', 'lcp_rows', 'max_lcp_rows')
+# float maxima (``floats``)
+F_MAX_RESIDUAL, F_MAX_PENETRATION, F_MAX_PGS_VRES = range(3)
+FLOAT_MAXIMA = ('max_residual', 'max_penetration_m', 'max_pgs_velocity_residual_mps')
+
+
+class StepBodies(NamedTuple):
+    """Per-body constants of a world, in the kernel's terms."""
+
+    dynamic: np.ndarray        # (n,) bool
+    dyn_idx: np.ndarray        # (nm,) indices of dynamic bodies
+    driven_idx: np.ndarray     # (nd,) indices of driven bodies, the drive table's row order
+    inv_mass: np.ndarray       # (n,) 1/kg
+    inv_inertia: np.ndarray    # (n,) 1/(kg m^2)
+    radius_m: np.ndarray       # (n,) largest distance of a vertex from the centre of mass
+    mu_static: np.ndarray      # (n,)
+    mu_dynamic: np.ndarray     # (n,)
+    restitution: np.ndarray    # (n,)
+    gravity: np.ndarray        # (2,) m/s^2
+    g: float                   # |gravity|
+
+
+class StepShapes(NamedTuple):
+    """The shape set and its topology (``ShapeSet``, ``ShapeTopology``)."""
+
+    vertices: np.ndarray
+    normals: np.ndarray
+    piece_start: np.ndarray
+    piece_body: np.ndarray
+    piece_radius: np.ndarray
+    vertex_body: np.ndarray
+    vertex_piece: np.ndarray
+    next_vertex: np.ndarray
+    prev_vertex: np.ndarray
+    edge_length: np.ndarray
+    piece_width: np.ndarray
+    vertex_active: np.ndarray
+    edge_internal: np.ndarray
+    cover_start: np.ndarray
+    cover_lo: np.ndarray
+    cover_hi: np.ndarray
+    vertex_canon: np.ndarray
+    n_piece_bodies: int        # one more than the largest body index owning a piece
+
+
+class StepSettings(NamedTuple):
+    """``TimeStepSettings`` and the scene's solver options (SI units)."""
+
+    time_step_s: float
+    touch_m: float
+    projection_slop_m: float
+    projection_reach: float
+    slop_m: float
+    push_out: float
+    push_max_mps: float
+    spec_depth: float          # speculative_depth x collision.DEPTH_FRACTION
+    slip_tol_mps: float
+    lcp_tol: float
+    direct_max_rows: int
+    pgs_tol_mps: float
+    pgs_max_sweeps: int
+    pgs_check: int
+    pgs_omega: float
+    friction_impulse: bool
+    narrow: NarrowPhaseTolerances   # find_contacts' defaults; bp_margin_m holds only the
+    #                                 broad phase's widening (2 param_tol x longest edge), the
+    #                                 step adds its margin
+
+
+class Warm(NamedTuple):
+    """Impulses of the previous step by feature key ``vertex * n_vertices + edge``, sorted."""
+
+    keys: np.ndarray
+    p_n: np.ndarray
+    p_t: np.ndarray
+
+
+class Reports(NamedTuple):
+    """Contacts and impulses of the steps taken, one row per kept contact, step after step."""
+
+    body_a: np.ndarray
+    piece_a: np.ndarray
+    vertex_a: np.ndarray
+    body_b: np.ndarray
+    piece_b: np.ndarray
+    edge_b: np.ndarray
+    point: np.ndarray          # (cap, 2)
+    normal: np.ndarray         # (cap, 2)
+    gap: np.ndarray
+    edge_param: np.ndarray
+    tangent: np.ndarray        # (cap, 2)
+    r_a: np.ndarray            # (cap, 2)
+    r_b: np.ndarray            # (cap, 2)
+    mu_static: np.ndarray
+    mu_dynamic: np.ndarray
+    restitution: np.ndarray
+    normal_impulse: np.ndarray
+    tangent_impulse: np.ndarray
+    step_end: np.ndarray       # (cap,) row count after each step with contacts
+    counts: np.ndarray         # (2,) rows and steps written
+
+
+def new_reports(capacity: int) -> Reports:
+    """Empty report buffers for ``capacity`` contact rows."""
+    i, f, v = (lambda: np.zeros(capacity, np.int64)), (lambda: np.zeros(capacity)), (
+        lambda: np.zeros((capacity, 2)))
+    return Reports(i(), i(), i(), i(), i(), i(), v(), v(), f(), f(), v(), v(), v(), f(), f(), f(),
+                   f(), f(), i(), np.zeros(2, np.int64))
+
+
+# ------------------------------------------------------------------------------ helpers
+@inner
+def _larger(a, b):
+    """Python's ``max(a, b)``: ``b`` only when it is strictly larger (NaN never wins)."""
+    return b if b > a else a
+
+
+@inner
+def _pairwise_sum(x, lo, n):
+    """``numpy``'s pairwise summation of ``x[lo:lo + n]`` (its ``add`` reduction)."""
+    if n < 8:
+        r = 0.0
+        for i in range(lo, lo + n):
+            r += x[i]
+        return r
+    if n <= 128:
+        r0, r1, r2, r3 = x[lo], x[lo + 1], x[lo + 2], x[lo + 3]
+        r4, r5, r6, r7 = x[lo + 4], x[lo + 5], x[lo + 6], x[lo + 7]
+        i = 8
+        while i < n - n % 8:
+            r0 += x[lo + i]
+            r1 += x[lo + i + 1]
+            r2 += x[lo + i + 2]
+            r3 += x[lo + i + 3]
+            r4 += x[lo + i + 4]
+            r5 += x[lo + i + 5]
+            r6 += x[lo + i + 6]
+            r7 += x[lo + i + 7]
+            i += 8
+        r = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+        while i < n:
+            r += x[lo + i]
+            i += 1
+        return r
+    half = n // 2
+    half -= half % 8
+    return _pairwise_sum(x, lo, half) + _pairwise_sum(x, lo + half, n - half)
+
+
+@inner
+def _segment_sum(x, lo, hi):
+    """``np.add.reduceat``'s sum of a non-empty segment: the first value, then the rest
+    summed pairwise."""
+    if hi - lo == 1:
+        return x[lo]
+    return x[lo] + _pairwise_sum(x, lo + 1, hi - lo - 1)
+
+
+@inner
+def _prescribed(t, drives, driven_idx, position, velocity):
+    """``World.apply_prescribed_motion``: driven bodies' positions and velocities at t."""
+    for row in range(driven_idx.shape[0]):
+        i = driven_idx[row]
+        d, v, _ = segment_motion(t, drives, row)
+        for j in range(2):
+            u = drives.direction[row, j]
+            position[i, j] = drives.base_m[row, j] + d * u
+            velocity[i, j] = v * u
+
+
+@inner
+def _find_contacts(shapes, position, angle, dynamic, margin, narrow):
+    """``collision.find_contacts(shapes, position, angle, dynamic, margin=margin)``: the
+    kept contacts' (vertex, edge, gap, edge_param, world vertices, world normals)."""
+    nv = shapes.vertices.shape[0]
+    n = position.shape[0]
+    cos = np.empty(n)
+    sin = np.empty(n)
+    for i in range(n):
+        cos[i] = math.cos(angle[i])
+        sin[i] = math.sin(angle[i])
+    w = np.empty((nv, 2))
+    nw = np.empty((nv, 2))
+    for k in range(nv):
+        i = shapes.vertex_body[k]
+        c, s = cos[i], sin[i]
+        x, y = shapes.vertices[k, 0], shapes.vertices[k, 1]
+        w[k, 0] = position[i, 0] + (c * x - s * y)
+        w[k, 1] = position[i, 1] + (s * x + c * y)
+        x, y = shapes.normals[k, 0], shapes.normals[k, 1]
+        nw[k, 0] = c * x - s * y
+        nw[k, 1] = s * x + c * y
+    n_p = shapes.piece_body.shape[0]
+    lo = np.empty((n_p, 2))
+    hi = np.empty((n_p, 2))
+    for p in range(n_p):
+        for j in range(2):
+            a = w[shapes.piece_start[p], j]
+            b = a
+            for k in range(shapes.piece_start[p] + 1, shapes.piece_start[p + 1]):
+                a = min(a, w[k, j])
+                b = max(b, w[k, j])
+            lo[p, j] = a
+            hi[p, j] = b
+    take = np.ones(n_p, np.bool_)
+    dyn = np.empty(n_p, np.bool_)
+    any_dyn = False
+    for p in range(n_p):
+        dyn[p] = dynamic[shapes.piece_body[p]]
+        any_dyn = any_dyn or dyn[p]
+    empty_i = np.zeros(0, np.int64)
+    empty_f = np.zeros(0)
+    finite = True
+    for p in range(n_p):
+        for j in range(2):
+            finite = finite and lo[p, j] - lo[p, j] == 0.0 and hi[p, j] - hi[p, j] == 0.0
+    if not finite:
+        # find_contacts refuses non-finite bounds: the reference step raises its error
+        return empty_i, empty_i, empty_f, empty_f, w, nw, False
+    if n_p < 2 or not any_dyn:
+        return empty_i, empty_i, empty_f, empty_f, w, nw, True
+    coord = np.empty(n)
+    for i in range(n):
+        coord[i] = max(abs(position[i, 0]), abs(position[i, 1]))
+    vert, edge, gap, t, _ = narrow_phase(
+        w, nw, lo, hi, shapes.piece_start, shapes.piece_body, take, dyn, shapes.piece_width,
+        coord, shapes.piece_radius, shapes.vertex_active, shapes.edge_internal,
+        shapes.next_vertex, shapes.prev_vertex, shapes.edge_length,
+        NarrowPhaseTolerances(margin + narrow.bp_margin_m, margin, narrow.depth_m,
+                              narrow.depth_fraction, narrow.tie_rel, narrow.param_tol,
+                              narrow.angle_tol))
+    if vert.shape[0] == 0:
+        return empty_i, empty_i, empty_f, empty_f, w, nw, True
+    o = clean_contacts(vert, edge, gap, t, shapes.cover_start, shapes.cover_lo,
+                       shapes.cover_hi, shapes.next_vertex, shapes.vertex_canon,
+                       shapes.vertex_body, nw, nv, shapes.n_piece_bodies, narrow.param_tol,
+                       narrow.angle_tol)
+    return vert[o], edge[o], gap[o], t[o], w, nw, True
+
+
+@inner
+def _nan_max(x, sel):
+    """``x[sel].max()`` as numpy gives it (NaN wins); -inf when nothing is selected."""
+    m = -np.inf
+    for i in range(x.shape[0]):
+        if sel[i]:
+            if x[i] != x[i]:
+                return x[i]
+            m = max(m, x[i])
+    return m
+
+
+@inner
+def _warm_lookup(warm, keys):
+    """``_Warm.lookup``: the previous impulses of these features, 0 where one is new."""
+    k = keys.shape[0]
+    x_n = np.zeros(k)
+    x_t = np.zeros(k)
+    size = warm.keys.shape[0]
+    if size == 0:
+        return x_n, x_t
+    for q in range(k):
+        lo, hi = 0, size
+        while lo < hi:       # searchsorted, side='left'
+            mid = (lo + hi) // 2
+            if warm.keys[mid] < keys[q]:
+                lo = mid + 1
+            else:
+                hi = mid
+        pos = min(lo, size - 1)
+        if warm.keys[pos] == keys[q]:
+            x_n[q] = warm.p_n[pos]
+            x_t[q] = warm.p_t[pos]
+    return x_n, x_t
+
+
+@inner
+def _take_f(x, idx):
+    out = np.empty(idx.shape[0])
+    for q in range(idx.shape[0]):
+        out[q] = x[idx[q]]
+    return out
+
+
+@inner
+def _take_i(x, idx):
+    out = np.empty(idx.shape[0], np.int64)
+    for q in range(idx.shape[0]):
+        out[q] = x[idx[q]]
+    return out
+
+
+@inner
+def _take_b(x, idx):
+    out = np.empty(idx.shape[0], np.bool_)
+    for q in range(idx.shape[0]):
+        out[q] = x[idx[q]]
+    return out
+
+
+@inner
+def _take_v(x, idx):
+    out = np.empty((idx.shape[0], 2))
+    for q in range(idx.shape[0]):
+        out[q, 0] = x[idx[q], 0]
+        out[q, 1] = x[idx[q], 1]
+    return out
+
+
+@inner
+def _record_batch(ints, floats, sel, rows, work, res, converged):
+    """``SolverStats.record_batch`` of the islands with ``sel``."""
+    n = 0
+    n_conv = 0
+    rows_sum = 0
+    rows_max = 0
+    work_sum = 0
+    for i in range(sel.shape[0]):
+        if sel[i]:
+            n += 1
+            n_conv += converged[i]
+            rows_sum += rows[i]
+            rows_max = max(rows_max, rows[i])
+            work_sum += work[i]
+    if n == 0:
+        return
+    ints[I_LCP_SOLVES] += n
+    ints[I_LCP_ROWS] += rows_sum
+    ints[I_MAX_LCP_ROWS] = max(ints[I_MAX_LCP_ROWS], rows_max)
+    ints[I_PIVOTS] += work_sum
+    ints[I_UNCONVERGED] += n - n_conv
+    floats[F_MAX_RESIDUAL] = _larger(floats[F_MAX_RESIDUAL], _nan_max(res, sel))
+
+
+@inner
+def _solve(n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b_t, box, mu_lo,
+           mu_hi, mu_s, mu_d, keys, todo, warm, st, ints, floats, msgs, n_msgs):
+    """``TimeStepper._solve`` (arrays in island order): the impulses, or ``ok`` False where
+    the compiled Dantzig missed ``lcp_tol`` (the reference step takes over)."""
+    k = a.shape[0]
+    n_isl = starts.shape[0] - 1
+    lens = np.empty(n_isl, np.int64)
+    rows = np.empty(n_isl, np.int64)
+    isl = np.empty(k, np.int64)
+    small = np.zeros(n_isl, np.bool_)
+    large = np.zeros(n_isl, np.bool_)
+    any_large = False
+    for i in range(n_isl):
+        lens[i] = starts[i + 1] - starts[i]
+        nbox = 0
+        for q in range(starts[i], starts[i + 1]):
+            isl[q] = i
+            nbox += box[q]
+        rows[i] = lens[i] + nbox
+        small[i] = todo[i] and rows[i] <= st.direct_max_rows
+        large[i] = todo[i] and not small[i]
+        any_large = any_large or large[i]
+    may_slide = np.empty(k, np.bool_)
+    any_slide = False
+    for q in range(k):
+        may_slide[q] = box[q] and mu_d[q] < mu_s[q]
+        any_slide = any_slide or may_slide[q]
+    if any_large:
+        # PGS starts from the previous step's impulses (Dantzig from scratch)
+        x_n, x_t = _warm_lookup(warm, keys)
+        for q in range(k):
+            if not todo[isl[q]]:
+                x_n[q] = 0.0
+                x_t[q] = 0.0
+    else:
+        x_n, x_t = np.zeros(k), np.zeros(k)
+    lo = mu_lo.copy()
+    hi = mu_hi.copy()
+    v_t_new = np.zeros(k)
+    ones = np.ones(n_isl, np.bool_)
+    for again in (True, False):
+        if small.any():
+            res, work, codes = solve_small(small, starts, a, b, normal, tangent, r_a, r_b,
+                                           bodies.inv_mass, bodies.inv_inertia, b_n, b_t, box,
+                                           lo, hi, x_n, x_t, v_t_new)
+            for i in range(n_isl):
+                if small[i] and res[i] > st.lcp_tol:
+                    return x_n, x_t, False
+            _record_batch(ints, floats, small, rows, work, res, ones)
+        if large.any():
+            res, vres, work = solve_pgs(large, starts, a, b, normal, tangent, r_a, r_b,
+                                        bodies.inv_mass, bodies.inv_inertia, b_n, b_t, box, lo,
+                                        hi, x_n, x_t, v_t_new, np.zeros((n_bodies, 3)),
+                                        st.pgs_tol_mps, st.pgs_max_sweeps, st.pgs_check,
+                                        st.pgs_omega)
+            conv = np.empty(n_isl, np.bool_)
+            for i in range(n_isl):
+                conv[i] = vres[i] <= st.pgs_tol_mps
+            _record_batch(ints, floats, large, rows, work, res, conv)
+            n_large = 0
+            for i in range(n_isl):
+                if large[i]:
+                    n_large += 1
+                    if not conv[i] and n_msgs[0] < msgs.shape[0]:
+                        m = n_msgs[0]
+                        msgs[m, 0], msgs[m, 1] = vres[i], res[i]
+                        msgs[m, 2], msgs[m, 3] = work[i], rows[i]
+                        n_msgs[0] += 1
+            ints[I_PGS] += n_large
+            floats[F_MAX_PGS_VRES] = _larger(floats[F_MAX_PGS_VRES], _nan_max(vres, large))
+        # A static contact driven to its bound slides within the step: from then on the
+        # dynamic coefficient acts, one-sided in the direction the contact now slips.
+        if not (again and any_slide):
+            break
+        redo = np.zeros(n_isl, np.bool_)
+        any_saturated = False
+        for q in range(k):
+            i = isl[q]
+            if (may_slide[q] and lo[q] == hi[q] and lo[q] > 0
+                    and abs(x_t[q]) >= lo[q] * x_n[q] * (1 - 1e-9) and x_n[q] > 0
+                    and abs(v_t_new[q]) > st.slip_tol_mps and (small[i] or large[i])):
+                redo[i] = True
+                any_saturated = True
+                lo[q] = mu_d[q] if v_t_new[q] > 0 else 0.0
+                hi[q] = mu_d[q] if v_t_new[q] < 0 else 0.0
+        if not any_saturated:
+            break
+        for i in range(n_isl):
+            small[i] = small[i] and redo[i]
+            large[i] = large[i] and redo[i]
+    return x_n, x_t, True
+
+
+@inner
+def _step(h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, floats, rep, msgs,
+          n_msgs):
+    """One ``TimeStepper.step`` of ``h`` from ``t0``: ``(code, warm)``; the state, the
+    counters and the reports are written only when the step is taken (``DONE``)."""
+    n = pos.shape[0]
+    dynamic, dyn_idx = bodies.dynamic, bodies.dyn_idx
+    half = 0.5 * h
+    mid_pos = pos.copy()
+    mid_ang = ang.copy()
+    mid_vel = vel.copy()
+    drift(dyn_idx, pos, ang, vel, om, half, mid_pos, mid_ang)
+    _prescribed(t0 + 0.5 * h, drives, bodies.driven_idx, mid_pos, mid_vel)
+    # free end-of-step velocities; driven bodies' positions and velocities at t0 + h
+    end_pos = mid_pos.copy()
+    end_vel = mid_vel.copy()
+    end_om = om.copy()
+    for i in range(n):
+        if dynamic[i]:
+            for j in range(2):
+                end_vel[i, j] = end_vel[i, j] + h * bodies.gravity[j]
+    _prescribed(t0 + h, drives, bodies.driven_idx, end_pos, end_vel)
+
+    # TimeStepper.margin
+    v_max, v_kin, spin, closing = speed_bounds(vel, om, bodies.radius_m, dynamic)
+    for row in range(bodies.driven_idx.shape[0]):
+        v_kin = _larger(v_kin, drives.omega_rad_s[row] * drives.amplitude_m[row] * 2)
+    g = bodies.g
+    slack = 10 * st.touch_m
+    base = 1.5 * h * (v_max + v_kin + g * h) + slack
+    margin = 1.5 * h * (_larger(v_max + v_kin, closing) + g * h) + slack
+
+    vert, edge, gap, param, w, nw, finite = _find_contacts(shapes, mid_pos, mid_ang, dynamic,
+                                                           margin, st.narrow)
+    if not finite:
+        return REFERENCE, warm
+    k = vert.shape[0]
+    if k and margin > base:
+        # TimeStepper._within_reach
+        far = False
+        for q in range(k):
+            far = far or gap[q] > base
+        if far:
+            sel = np.empty(k, np.int64)
+            m = 0
+            for q in range(k):
+                ia = shapes.vertex_body[vert[q]]
+                ib = shapes.vertex_body[edge[q]]
+                dx, dy = vel[ia, 0] - vel[ib, 0], vel[ia, 1] - vel[ib, 1]
+                close = (math.hypot(dx, dy) + abs(om[ia]) * bodies.radius_m[ia]
+                         + abs(om[ib]) * bodies.radius_m[ib])
+                reach = 1.5 * h * (close + g * h) + 10 * st.touch_m
+                if not gap[q] > base or (dynamic[ia] and dynamic[ib] and gap[q] <= reach):
+                    sel[m] = q
+                    m += 1
+            sel = sel[:m]
+            vert, edge, gap, param = (_take_i(vert, sel), _take_i(edge, sel),
+                                      _take_f(gap, sel), _take_f(param, sel))
+            k = m
+
+    new_pos = pos.copy()
+    new_ang = ang.copy()
+    new_vel = vel.copy()
+    new_om = om.copy()
+    step_ints = np.zeros(ints.shape[0], np.int64)
+    step_floats = floats.copy()
+    step_msgs = n_msgs.copy()
+    projected = np.zeros(0, np.bool_)
+    m = 0
+    if k:
+        # TimeStepper._contacts
+        body_a = _take_i(shapes.vertex_body, vert)
+        body_b = _take_i(shapes.vertex_body, edge)
+        piece_a = _take_i(shapes.vertex_piece, vert)
+        piece_b = _take_i(shapes.vertex_piece, edge)
+        point = _take_v(w, vert)
+        normal = _take_v(nw, edge)
+        order, starts, isl_bodies, body_starts = island_groups(n, dynamic, body_a, body_b)
+        slip_tol = _larger(st.slip_tol_mps, h * spin)
+        settings = RowSettings(h, st.touch_m, st.direct_max_rows, st.push_out, st.push_max_mps,
+                               st.slop_m, -2.0 * g * h, slip_tol, st.friction_impulse,
+                               st.spec_depth, margin)
+        (keep, tangent, r_a, r_b, mu_s, mu_d, rest, v_n_free, v_t_free, v_t_pre, pile,
+         colliding, b_n, box, mu_lo, mu_hi, gap_min) = contact_rows(
+            body_a, body_b, point, normal, gap, order, starts, mid_pos, end_vel, end_om, vel, om,
+            bodies.mu_static, bodies.mu_dynamic, bodies.restitution, piece_a, piece_b,
+            shapes.piece_width, settings)
+        m = keep.shape[0]
+    n_spare = 0
+    if m:
+        for q in range(m):
+            if rest[q] > 0.0:
+                return REFERENCE, warm   # the approach memory of bouncing contacts
+        rows0, steps0 = rep.counts[0], rep.counts[1]
+        if rows0 + m > rep.gap.shape[0] or steps0 + 1 > rep.step_end.shape[0]:
+            return GROW, warm
+        spare = np.ones(k, np.bool_)
+        for q in range(m):
+            spare[keep[q]] = False
+        if m < k:
+            left_out = np.flatnonzero(spare)
+            body_a, body_b = _take_i(body_a, keep), _take_i(body_b, keep)
+            s_vert, s_edge = _take_i(vert, left_out), _take_i(edge, left_out)
+            s_point, s_normal = _take_v(point, left_out), _take_v(normal, left_out)
+            s_a = _take_i(shapes.vertex_body, s_vert)
+            s_b = _take_i(shapes.vertex_body, s_edge)
+            vert, edge = _take_i(vert, keep), _take_i(edge, keep)
+            piece_a, piece_b = _take_i(piece_a, keep), _take_i(piece_b, keep)
+            point, normal = _take_v(point, keep), _take_v(normal, keep)
+            gap, param = _take_f(gap, keep), _take_f(param, keep)
+            order, starts, isl_bodies, body_starts = island_groups(n, dynamic, body_a, body_b)
+            n_spare = k - m
+        step_floats[F_MAX_PENETRATION] = _larger(step_floats[F_MAX_PENETRATION], -gap_min)
+        projected = np.empty(m, np.bool_)
+        any_pile = False
+        for q in range(m):
+            projected[q] = not pile[q]
+            any_pile = any_pile or pile[q]
+        if n_spare and any_pile:
+            # TimeStepper._outside_piles: piles are not projected
+            in_pile = np.zeros(n, np.bool_)
+            for q in range(m):
+                if pile[q]:
+                    in_pile[body_a[q]] = True
+                    in_pile[body_b[q]] = True
+            ok = np.empty(n_spare, np.int64)
+            n_ok = 0
+            for q in range(n_spare):
+                if not ((in_pile[s_a[q]] and dynamic[s_a[q]])
+                        or (in_pile[s_b[q]] and dynamic[s_b[q]])):
+                    ok[n_ok] = q
+                    n_ok += 1
+            ok = ok[:n_ok]
+            s_vert, s_edge = _take_i(s_vert, ok), _take_i(s_edge, ok)
+            s_point, s_normal = _take_v(s_point, ok), _take_v(s_normal, ok)
+            s_a, s_b = _take_i(s_a, ok), _take_i(s_b, ok)
+            n_spare = n_ok
+        nv = shapes.vertices.shape[0]
+        keys = np.empty(m, np.int64)
+        for q in range(m):
+            keys[q] = vert[q] * nv + edge[q]
+        p_n = np.zeros(m)
+        p_t = np.zeros(m)
+        n_isl = starts.shape[0] - 1
+        step_ints[I_ISLANDS] += n_isl
+        # an island whose normal rows all have b >= 0 is answered by zero impulses
+        b_no = _take_f(b_n, order)
+        neg = np.zeros(n_isl, np.bool_)
+        n_neg = 0
+        for i in range(n_isl):
+            lo_v = b_no[starts[i]]
+            for q in range(starts[i] + 1, starts[i + 1]):
+                x = b_no[q]
+                lo_v = x if x < lo_v or x != x else lo_v   # np.minimum (NaN wins)
+            neg[i] = lo_v < 0.0
+            n_neg += neg[i]
+        step_ints[I_LCP_SOLVES] += n_isl - n_neg
+        step_ints[I_TRIVIAL] += n_isl - n_neg
+        a_o, b_o = _take_i(body_a, order), _take_i(body_b, order)
+        normal_o, tangent_o = _take_v(normal, order), _take_v(tangent, order)
+        r_a_o, r_b_o = _take_v(r_a, order), _take_v(r_b, order)
+        if n_neg:
+            x_n, x_t, ok_solve = _solve(
+                n, starts, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o, bodies, b_no,
+                _take_f(v_t_free, order), _take_b(box, order), _take_f(mu_lo, order),
+                _take_f(mu_hi, order), _take_f(mu_s, order), _take_f(mu_d, order),
+                _take_i(keys, order), neg, warm, st, step_ints, step_floats, msgs, step_msgs)
+            if not ok_solve:
+                return REFERENCE, warm
+            for q in range(m):
+                p_n[order[q]] = x_n[q]
+                p_t[order[q]] = x_t[q]
+            dv = np.zeros((n, 3))
+            apply_impulses(dv, body_a, body_b, normal, tangent, r_a, r_b, bodies.inv_mass,
+                           bodies.inv_inertia, p_n, p_t)
+            for i in range(n):
+                if dynamic[i]:
+                    end_vel[i, 0] = end_vel[i, 0] + dv[i, 0]
+                    end_vel[i, 1] = end_vel[i, 1] + dv[i, 1]
+                    end_om[i] = end_om[i] + dv[i, 2]
+        for q in range(m):
+            step_ints[I_IMPACTS] += colliding[q] and p_n[q] > 0
+        o = _argsort(keys)
+        new_warm = Warm(_take_i(keys, o), _take_f(p_n, o), _take_f(p_t, o))
+    else:
+        new_warm = warm
+
+    # the second half step
+    drift(dyn_idx, mid_pos, mid_ang, end_vel, end_om, half, new_pos, new_ang)
+    for i in range(n):
+        if dynamic[i]:
+            new_vel[i, 0] = end_vel[i, 0]
+            new_vel[i, 1] = end_vel[i, 1]
+            new_om[i] = end_om[i]
+    for row in range(bodies.driven_idx.shape[0]):
+        i = bodies.driven_idx[row]
+        for j in range(2):
+            new_pos[i, j] = end_pos[i, j]
+            new_vel[i, j] = end_vel[i, j]
+
+    if m and projected.any():
+        # TimeStepper._project: positions out along the contact normals
+        cos = np.empty(n)
+        sin = np.empty(n)
+        for i in range(n):
+            cos[i] = math.cos(new_ang[i])
+            sin[i] = math.sin(new_ang[i])
+        idx = np.flatnonzero(projected)
+        gap_end = np.zeros(m)
+        got = feature_gaps(idx, vert, edge, shapes.vertices, shapes.normals, shapes.vertex_body,
+                           new_pos, cos, sin)
+        deep_any = False
+        for q in range(idx.shape[0]):
+            gap_end[idx[q]] = got[q]
+            deep_any = deep_any or got[q] < -st.projection_slop_m
+        if deep_any:
+            if n_spare:
+                # TimeStepper._with_spare: the contacts left out of the velocity solve too
+                kk = m + n_spare
+                c_a = np.concatenate((body_a, s_a))
+                c_b = np.concatenate((body_b, s_b))
+                c_vert = np.concatenate((vert, s_vert))
+                c_edge = np.concatenate((edge, s_edge))
+                c_normal = np.empty((kk, 2))
+                c_tangent = np.empty((kk, 2))
+                c_ra = np.empty((kk, 2))
+                c_rb = np.empty((kk, 2))
+                for q in range(kk):
+                    for j in range(2):
+                        if q < m:
+                            c_normal[q, j] = normal[q, j]
+                            c_tangent[q, j] = tangent[q, j]
+                            c_ra[q, j] = r_a[q, j]
+                            c_rb[q, j] = r_b[q, j]
+                        else:
+                            s = q - m
+                            c_normal[q, j] = s_normal[s, j]
+                            c_ra[q, j] = s_point[s, j] - mid_pos[s_a[s], j]
+                            c_rb[q, j] = s_point[s, j] - mid_pos[s_b[s], j]
+                    if q >= m:
+                        c_tangent[q, 0] = -c_normal[q, 1]
+                        c_tangent[q, 1] = c_normal[q, 0]
+                mask = np.ones(kk, np.bool_)
+                for q in range(m):
+                    mask[q] = projected[q]
+                idx = np.flatnonzero(mask)
+                gap_end = np.zeros(kk)
+                got = feature_gaps(idx, c_vert, c_edge, shapes.vertices, shapes.normals,
+                                   shapes.vertex_body, new_pos, cos, sin)
+                for q in range(idx.shape[0]):
+                    gap_end[idx[q]] = got[q]
+                order, starts, isl_bodies, body_starts = island_groups(n, dynamic, c_a, c_b)
+                a_o, b_o = _take_i(c_a, order), _take_i(c_b, order)
+                normal_o, tangent_o = _take_v(c_normal, order), _take_v(c_tangent, order)
+                r_a_o, r_b_o = _take_v(c_ra, order), _take_v(c_rb, order)
+            kk = order.shape[0]
+            n_isl = starts.shape[0] - 1
+            gap_o = _take_f(gap_end, order)
+            deep_o = np.empty(kk, np.bool_)
+            rhs = np.empty(kk)
+            for q in range(kk):
+                deep_o[q] = gap_o[q] < -st.projection_slop_m
+                rhs[q] = gap_o[q] + st.projection_slop_m
+            sel = np.zeros(n_isl, np.bool_)
+            lens = np.empty(n_isl, np.int64)
+            for i in range(n_isl):
+                lens[i] = starts[i + 1] - starts[i]
+                for q in range(starts[i], starts[i + 1]):
+                    sel[i] = sel[i] or deep_o[q]
+            zeros = np.zeros(kk)
+            x_n = np.zeros(kk)
+            res, work, codes = solve_small(sel, starts, a_o, b_o, normal_o, tangent_o, r_a_o,
+                                           r_b_o, bodies.inv_mass, bodies.inv_inertia, rhs,
+                                           zeros, np.zeros(kk, np.bool_), zeros, zeros, x_n,
+                                           np.zeros(kk), np.zeros(kk))
+            for i in range(n_isl):
+                if sel[i] and res[i] > st.lcp_tol:
+                    return REFERENCE, warm
+            _record_batch(step_ints, step_floats, sel, lens, work, res, sel)
+            dv = np.zeros((n, 3))
+            apply_impulses(dv, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o, bodies.inv_mass,
+                           bodies.inv_inertia, x_n, zeros)
+            sunk = np.empty(kk)
+            for q in range(kk):
+                x = -gap_o[q]
+                sunk[q] = (x if x > 0.0 or x != x else 0.0) * (1.0 if deep_o[q] else 0.0)
+            for i in range(n_isl):
+                limit = st.projection_reach * _segment_sum(sunk, starts[i], starts[i + 1])
+                for q in range(body_starts[i], body_starts[i + 1]):
+                    bi = isl_bodies[q]
+                    travel = (math.hypot(dv[bi, 0], dv[bi, 1])
+                              + abs(dv[bi, 2]) * bodies.radius_m[bi])
+                    travel = travel if travel > 1e-300 or travel != travel else 1e-300
+                    scale = limit / travel
+                    scale = scale if scale < 1.0 or scale != scale else 1.0
+                    for j in range(3):
+                        dv[bi, j] = dv[bi, j] * scale
+            for i in range(n):
+                if dynamic[i]:
+                    new_pos[i, 0] = new_pos[i, 0] + dv[i, 0]
+                    new_pos[i, 1] = new_pos[i, 1] + dv[i, 1]
+                    new_ang[i] = new_ang[i] + dv[i, 2]
+
+    # the step is taken: write it
+    step_ints[I_STEPS] += 1
+    for i in range(n):
+        for j in range(2):
+            pos[i, j] = new_pos[i, j]
+            vel[i, j] = new_vel[i, j]
+        ang[i] = new_ang[i]
+        om[i] = new_om[i]
+    for c in range(ints.shape[0]):
+        if c == I_MAX_LCP_ROWS:
+            ints[c] = max(ints[c], step_ints[c])
+        else:
+            ints[c] += step_ints[c]
+    for c in range(floats.shape[0]):
+        floats[c] = step_floats[c]
+    n_msgs[0] = step_msgs[0]
+    if m:
+        r0 = rep.counts[0]
+        for q in range(m):
+            r = r0 + q
+            rep.body_a[r], rep.piece_a[r], rep.vertex_a[r] = body_a[q], piece_a[q], vert[q]
+            rep.body_b[r], rep.piece_b[r], rep.edge_b[r] = body_b[q], piece_b[q], edge[q]
+            for j in range(2):
+                rep.point[r, j] = point[q, j]
+                rep.normal[r, j] = normal[q, j]
+                rep.tangent[r, j] = tangent[q, j]
+                rep.r_a[r, j] = r_a[q, j]
+                rep.r_b[r, j] = r_b[q, j]
+            rep.gap[r], rep.edge_param[r] = gap[q], param[q]
+            rep.mu_static[r], rep.mu_dynamic[r], rep.restitution[r] = mu_s[q], mu_d[q], rest[q]
+            rep.normal_impulse[r], rep.tangent_impulse[r] = p_n[q], p_t[q]
+        rep.counts[0] = r0 + m
+        rep.step_end[rep.counts[1]] = r0 + m
+        rep.counts[1] += 1
+    return DONE, new_warm
+
+
+@jit
+def advance(t, t_end, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, floats, rep,
+            msgs, n_msgs):
+    """``TimeStepper.advance`` from ``t`` to ``t_end`` (s) by ``st.time_step_s``, the last
+    step shortened to land on ``t_end``: ``(code, t, warm)``, where ``code`` is ``DONE`` or
+    why the step at ``t`` is left to the caller (``REFERENCE``, ``GROW``)."""
+    h = st.time_step_s
+    while t_end - t > 1e-9 * h:
+        step = min(h, t_end - t)
+        code, warm = _step(step, t, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints,
+                           floats, rep, msgs, n_msgs)
+        if code != DONE:
+            return code, t, warm
+        t = t + step
+    return DONE, t, warm
