@@ -233,8 +233,8 @@ def _island_residual(lo_c, hi_c, a, b, ja, jb, dv, b_n, b_t, box, mu_lo, mu_hi, 
 
 @inner(inline='always')
 def _contact_velocity(i, ia, ib, nx, ny, r_a, r_b, velocity, omega):
-    """Normal and tangential relative velocity (m/s) of contact i (``dynamics.relative_velocity``
-    with the same operation order, so the same bits)."""
+    """Normal and tangential velocity (m/s) of contact i's vertex relative to the edge's
+    material point under it: ``v_a + omega_a x r_a - (v_b + omega_b x r_b)`` on n and t."""
     pax = velocity[ia, 0] + omega[ia] * -r_a[i, 1]
     pay = velocity[ia, 1] + omega[ia] * r_a[i, 0]
     pbx = velocity[ib, 0] + omega[ib] * -r_b[i, 1]
@@ -245,8 +245,7 @@ def _contact_velocity(i, ia, ib, nx, ny, r_a, r_b, velocity, omega):
 
 @jit
 def contact_velocities(a, b, normal, r_a, r_b, velocity, omega):
-    """Normal and tangential relative velocity of every contact (``dynamics.relative_velocity``
-    with the same operation order, so the same bits)."""
+    """Normal and tangential relative velocity (m/s) of every contact (``_contact_velocity``)."""
     k = a.shape[0]
     v_n = np.empty(k)
     v_t = np.empty(k)

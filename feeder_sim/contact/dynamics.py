@@ -81,17 +81,6 @@ def friction_rows(cs: ContactSet, v_t: np.ndarray, colliding: np.ndarray, fricti
     return friction, mu_lo, mu_hi
 
 
-def point_velocity(state: State, body: np.ndarray, r: np.ndarray) -> np.ndarray:
-    return state.velocity[body] + state.omega[body][:, None] * perp(r)
-
-
-def relative_velocity(cs: ContactSet, state: State) -> tuple[np.ndarray, np.ndarray]:
-    """Normal and tangential relative velocity (m/s) of every contact."""
-    c = cs.contacts
-    rel = point_velocity(state, c.body_a, cs.r_a) - point_velocity(state, c.body_b, cs.r_b)
-    return np.sum(rel * c.normal, 1), np.sum(rel * cs.tangent, 1)
-
-
 def islands(world: World, cs: ContactSet) -> list[tuple[np.ndarray, np.ndarray]]:
     """Groups of dynamic bodies that touch each other, with their contacts.
 

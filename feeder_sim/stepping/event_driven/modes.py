@@ -62,8 +62,8 @@ def with_geometry(world: World, features: Contacts, state: State) -> ContactSet:
 
 
 def relative_velocity(cs: ContactSet, state: State) -> tuple[np.ndarray, np.ndarray]:
-    """Normal and tangential relative velocity of every contact, as
-    :func:`feeder_sim.contact.dynamics.relative_velocity` gives them."""
+    """Normal and tangential velocity (m/s) of every contact's vertex relative to the edge's
+    material point under it."""
     c = cs.contacts
     return kern.relative_velocity(c.normal, cs.r_a, cs.r_b, c.body_a, c.body_b, state.velocity,
                                   state.omega)
