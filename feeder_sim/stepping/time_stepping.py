@@ -57,16 +57,22 @@ island's problem is the ``dynamics.assemble`` layout (normals, then the friction
 
 Compiled paths and their references
 -----------------------------------
-A step's work is kept out of Python loops and per-island numpy calls (benchmarks/pile.py:
-200 parts ~2 ms per step, most of it the PGS sweeps and the contact search): the per-contact
-set-up (index set, Newton / push-out rows, Kawachi's bounds) is one kernel,
-``_island_kernels.contact_rows``, with the bits of the numpy code it replaced
+``TimeStepper.advance`` runs whole steps in ``_time_stepping_kernels.advance``, many per call,
+with the operations of ``TimeStepper.step`` in the same order: the same bits, frames, counters
+and contact reports (test/test_pile.py, test/test_fingerprint.py). ``step`` stays as the
+reference and takes the steps the kernel hands back: a contact with restitution (the approach
+speeds of speculative rows are kept in Python), a Dantzig answer missing ``lcp_tol`` (the
+reference solves it again through ``lcp.solve``'s ladder and counts the fallback), non-finite
+bounds (its error). ``TimeStepSettings(compiled=False)`` runs the reference alone.
+
+Within ``step``, the per-contact set-up (index set, Newton / push-out rows, Kawachi's bounds)
+is ``_island_kernels.contact_rows``, with the bits of the numpy code it replaced
 (``_contact_rows_reference``); the position projection of the small islands solves their
-normal-row LCPs together with the compiled Dantzig (``_island_kernels.solve_small``), ``lcp.solve``
-only for an island it cannot solve, where ``_project_reference`` solves each island by
-``lcp.solve`` with numpy Jacobians (same problems and pivots, positions within ~1e-18 m: the
-sums run in another order). test/test_pile.py checks both while a pile falls and settles, and
-the PGS sweep against a plain transcription of it.
+normal-row LCPs together with the compiled Dantzig (``_island_kernels.solve_small``),
+``lcp.solve`` only for an island it cannot solve, where ``_project_reference`` solves each
+island by ``lcp.solve`` with numpy Jacobians (same problems and pivots, positions within
+~1e-18 m: the sums run in another order). test/test_pile.py checks both while a pile falls and
+settles, and the PGS sweep against a plain transcription of it.
 """
 
 from __future__ import annotations
