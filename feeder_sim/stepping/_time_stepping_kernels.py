@@ -325,24 +325,9 @@ def _warm_lookup(warm, keys):
 
 
 @inner
-def _take_f(x, idx):
-    out = np.empty(idx.shape[0])
-    for q in range(idx.shape[0]):
-        out[q] = x[idx[q]]
-    return out
-
-
-@inner
-def _take_i(x, idx):
-    out = np.empty(idx.shape[0], np.int64)
-    for q in range(idx.shape[0]):
-        out[q] = x[idx[q]]
-    return out
-
-
-@inner
-def _take_b(x, idx):
-    out = np.empty(idx.shape[0], np.bool_)
+def _take(x, idx):
+    """``x[idx]`` of a 1-d array."""
+    out = np.empty(idx.shape[0], x.dtype)
     for q in range(idx.shape[0]):
         out[q] = x[idx[q]]
     return out
@@ -532,8 +517,8 @@ def _step(h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, floa
                     sel[m] = q
                     m += 1
             sel = sel[:m]
-            vert, edge, gap, param = (_take_i(vert, sel), _take_i(edge, sel),
-                                      _take_f(gap, sel), _take_f(param, sel))
+            vert, edge, gap, param = (_take(vert, sel), _take(edge, sel),
+                                      _take(gap, sel), _take(param, sel))
             k = m
 
     new_pos = pos.copy()
@@ -547,10 +532,10 @@ def _step(h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, floa
     m = 0
     if k:
         # TimeStepper._contacts
-        body_a = _take_i(shapes.vertex_body, vert)
-        body_b = _take_i(shapes.vertex_body, edge)
-        piece_a = _take_i(shapes.vertex_piece, vert)
-        piece_b = _take_i(shapes.vertex_piece, edge)
+        body_a = _take(shapes.vertex_body, vert)
+        body_b = _take(shapes.vertex_body, edge)
+        piece_a = _take(shapes.vertex_piece, vert)
+        piece_b = _take(shapes.vertex_piece, edge)
         point = _take_v(w, vert)
         normal = _take_v(nw, edge)
         order, starts, isl_bodies, body_starts = island_groups(n, dynamic, body_a, body_b)
@@ -577,15 +562,15 @@ def _step(h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, floa
             spare[keep[q]] = False
         if m < k:
             left_out = np.flatnonzero(spare)
-            body_a, body_b = _take_i(body_a, keep), _take_i(body_b, keep)
-            s_vert, s_edge = _take_i(vert, left_out), _take_i(edge, left_out)
+            body_a, body_b = _take(body_a, keep), _take(body_b, keep)
+            s_vert, s_edge = _take(vert, left_out), _take(edge, left_out)
             s_point, s_normal = _take_v(point, left_out), _take_v(normal, left_out)
-            s_a = _take_i(shapes.vertex_body, s_vert)
-            s_b = _take_i(shapes.vertex_body, s_edge)
-            vert, edge = _take_i(vert, keep), _take_i(edge, keep)
-            piece_a, piece_b = _take_i(piece_a, keep), _take_i(piece_b, keep)
+            s_a = _take(shapes.vertex_body, s_vert)
+            s_b = _take(shapes.vertex_body, s_edge)
+            vert, edge = _take(vert, keep), _take(edge, keep)
+            piece_a, piece_b = _take(piece_a, keep), _take(piece_b, keep)
             point, normal = _take_v(point, keep), _take_v(normal, keep)
-            gap, param = _take_f(gap, keep), _take_f(param, keep)
+            gap, param = _take(gap, keep), _take(param, keep)
             order, starts, isl_bodies, body_starts = island_groups(n, dynamic, body_a, body_b)
             n_spare = k - m
         step_floats[F_MAX_PENETRATION] = _larger(step_floats[F_MAX_PENETRATION], -gap_min)
@@ -609,9 +594,9 @@ def _step(h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, floa
                     ok[n_ok] = q
                     n_ok += 1
             ok = ok[:n_ok]
-            s_vert, s_edge = _take_i(s_vert, ok), _take_i(s_edge, ok)
+            s_vert, s_edge = _take(s_vert, ok), _take(s_edge, ok)
             s_point, s_normal = _take_v(s_point, ok), _take_v(s_normal, ok)
-            s_a, s_b = _take_i(s_a, ok), _take_i(s_b, ok)
+            s_a, s_b = _take(s_a, ok), _take(s_b, ok)
             n_spare = n_ok
         nv = shapes.vertices.shape[0]
         keys = np.empty(m, np.int64)
@@ -622,7 +607,7 @@ def _step(h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, floa
         n_isl = starts.shape[0] - 1
         step_ints[I_ISLANDS] += n_isl
         # an island whose normal rows all have b >= 0 is answered by zero impulses
-        b_no = _take_f(b_n, order)
+        b_no = _take(b_n, order)
         neg = np.zeros(n_isl, np.bool_)
         n_neg = 0
         for i in range(n_isl):
@@ -634,15 +619,15 @@ def _step(h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, floa
             n_neg += neg[i]
         step_ints[I_LCP_SOLVES] += n_isl - n_neg
         step_ints[I_TRIVIAL] += n_isl - n_neg
-        a_o, b_o = _take_i(body_a, order), _take_i(body_b, order)
+        a_o, b_o = _take(body_a, order), _take(body_b, order)
         normal_o, tangent_o = _take_v(normal, order), _take_v(tangent, order)
         r_a_o, r_b_o = _take_v(r_a, order), _take_v(r_b, order)
         if n_neg:
             x_n, x_t, ok_solve = _solve(
                 n, starts, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o, bodies, b_no,
-                _take_f(v_t_free, order), _take_b(box, order), _take_f(mu_lo, order),
-                _take_f(mu_hi, order), _take_f(mu_s, order), _take_f(mu_d, order),
-                _take_i(keys, order), neg, warm, st, step_ints, step_floats, msgs, step_msgs)
+                _take(v_t_free, order), _take(box, order), _take(mu_lo, order),
+                _take(mu_hi, order), _take(mu_s, order), _take(mu_d, order),
+                _take(keys, order), neg, warm, st, step_ints, step_floats, msgs, step_msgs)
             if not ok_solve:
                 return REFERENCE, warm
             for q in range(m):
@@ -659,7 +644,7 @@ def _step(h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, floa
         for q in range(m):
             step_ints[I_IMPACTS] += colliding[q] and p_n[q] > 0
         o = _argsort(keys)
-        new_warm = Warm(_take_i(keys, o), _take_f(p_n, o), _take_f(p_t, o))
+        new_warm = Warm(_take(keys, o), _take(p_n, o), _take(p_t, o))
     else:
         new_warm = warm
 
@@ -728,12 +713,12 @@ def _step(h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, floa
                 for q in range(idx.shape[0]):
                     gap_end[idx[q]] = got[q]
                 order, starts, isl_bodies, body_starts = island_groups(n, dynamic, c_a, c_b)
-                a_o, b_o = _take_i(c_a, order), _take_i(c_b, order)
+                a_o, b_o = _take(c_a, order), _take(c_b, order)
                 normal_o, tangent_o = _take_v(c_normal, order), _take_v(c_tangent, order)
                 r_a_o, r_b_o = _take_v(c_ra, order), _take_v(c_rb, order)
             kk = order.shape[0]
             n_isl = starts.shape[0] - 1
-            gap_o = _take_f(gap_end, order)
+            gap_o = _take(gap_end, order)
             deep_o = np.empty(kk, np.bool_)
             rhs = np.empty(kk)
             for q in range(kk):
