@@ -49,6 +49,7 @@ def test_reference_impulse_lcp_holds_the_light_boxes_still():
     # of the Dantzig pass left the light boxes at -4.9e-9 m/s and -9.8e-7 rad/s.
     sim = heavy_on_light(1e6)
     stepper = sim._stepper
+    stepper.settings.compiled = False       # the Python step, whose island solve is watched
     h = sim.scene.solver.time_step
     seen = []
 
