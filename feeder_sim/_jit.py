@@ -1,25 +1,337 @@
-"""The numba options every compiled kernel of feeder_sim is built with, in one place.
+"""The numba options every compiled kernel of feeder_sim is built with, and where it is cached.
 
-``cache=True``: compiled code is kept in ``__pycache__`` beside each module, so only the first
-run on a machine pays for compilation. ``nogil=True``: kernels release the GIL, so a node's
-executor threads keep serving callbacks while physics runs. ``error_model='numpy'``: a division
-by zero gives inf/NaN as in numpy instead of raising, so a kernel costs no per-division check
-and its results match the numpy reference it ports.
+``cache=True``: compiled code is kept on disk, so only the first run pays for compilation (a
+minute or more). numba's own scheme keys each file's cache on that file alone, in
+``__pycache__`` beside it, which fails three ways: an install elsewhere (colcon's ``install/``,
+another venv) compiles everything again; a kernel that calls a kernel of another file keeps
+the old callee's machine code after that file changes; and cache entries still name a module
+after it is renamed, so loading them fails. Here the whole set is keyed instead on a hash of
+the package's kernel sources (see :func:`key_material`) with the Python, numba and numpy
+versions, and kept in a per-user directory with one subdirectory per key: $FEEDER_SIM_CACHE_DIR,
+else $NUMBA_CACHE_DIR/feeder_sim (numba's own override is honoured), else
+$XDG_CACHE_HOME/feeder_sim or ~/.cache/feeder_sim. Any kernel change anywhere starts a fresh
+set; the same sources at another path reuse it; the few most recently used sets are kept. A
+compile is long and otherwise silent, so it is announced by one line on stderr when (and only
+when) one starts. The scheme is a cache locator put in front of numba's own (a private numba
+interface): a numba without it gets plain ``cache=True`` and one warning line.
+
+``nogil=True``: kernels release the GIL, so a node's executor threads keep serving callbacks
+while physics runs. ``error_model='numpy'``: a division by zero gives inf/NaN as in numpy
+instead of raising, so a kernel costs no per-division check and its results match the numpy
+reference it ports.
 """
 
+from __future__ import annotations
+
+import ast
+from collections.abc import Callable
+import functools
+import hashlib
+import os
+from pathlib import Path
+import re
+import shutil
+import sys
+
 import numba
+import numpy as np
 
 JIT_OPTIONS = {'cache': True, 'nogil': True, 'error_model': 'numpy'}
 
 
-def jit(fn):
+def jit(fn: Callable) -> Callable:
     """Compile ``fn`` with :data:`JIT_OPTIONS`."""
     return numba.njit(**JIT_OPTIONS)(fn)
 
 
-def inner(fn=None, *, inline: str = 'never'):
+def inner(fn: Callable | None = None, *, inline: str = 'never') -> Callable:
     """Compile ``fn`` for calls from other kernels only: no Python wrapper (less to compile).
 
     ``@inner(inline='always')`` also inlines it into each caller (for a tiny hot helper)."""
     compile_ = numba.njit(no_cpython_wrapper=True, inline=inline, **JIT_OPTIONS)
     return compile_ if fn is None else compile_(fn)
+
+
+# The keyed cache. Everything below applies to files under PACKAGE_ROOT only; other numba code
+# in the process keeps numba's own locators.
+
+ENV_VAR = 'FEEDER_SIM_CACHE_DIR'
+PACKAGE_ROOT = os.path.dirname(os.path.abspath(__file__))
+PACKAGE = os.path.basename(PACKAGE_ROOT)
+
+# Key directories kept besides the current one: a few for switching branches or installs,
+# not one per edit of a kernel (a full set is some tens of MB).
+_KEEP = 4
+_KEY_DIR = re.compile(r'^[\w.-]+-numba[\w.+]+-[0-9a-f]{16}$')
+_LAST_USED = '.last_used'
+# What a first run of one stepping method compiles, measured on a 2-core machine: 10 s
+# (impulse_based) to 75 s (event_driven); the whole test suite needs several minutes.
+_COLD_COMPILE = '10-80 s'
+
+_state = {'notice_dir': None, 'noticed': False, 'warned': False}
+
+
+def cache_root() -> Path:
+    """The directory holding one subdirectory per key: $FEEDER_SIM_CACHE_DIR, else
+    $NUMBA_CACHE_DIR/feeder_sim (numba's own override, e.g. for a read-only home), else
+    $XDG_CACHE_HOME/feeder_sim, else ~/.cache/feeder_sim."""
+    if os.environ.get(ENV_VAR):
+        root = Path(os.environ[ENV_VAR])
+    elif numba.config.CACHE_DIR:
+        root = Path(numba.config.CACHE_DIR) / PACKAGE
+    else:
+        xdg = os.environ.get('XDG_CACHE_HOME')
+        root = (Path(xdg) if xdg else Path.home() / '.cache') / PACKAGE
+    # absolute: numba keeps the path, and a process may change directory later
+    return Path(os.path.abspath(root.expanduser()))
+
+
+def _module_file(root: str, parts: list[str]) -> str | None:
+    base = os.path.join(root, *parts)
+    for candidate in (base + '.py', os.path.join(base, '__init__.py')):
+        if os.path.isfile(candidate):
+            return candidate
+    return None
+
+
+def _package_imports(root: str, rel: str, tree: ast.Module) -> list[tuple[str, set[str] | None]]:
+    """(file, imported names or None for the whole module) of each import from the package."""
+    package = os.path.basename(root)
+    here = rel.split(os.sep)[:-1]
+    found = []
+    # Module level only: kernels cannot import, and a module's globals are bound there.
+    for node in tree.body:
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                parts = alias.name.split('.')
+                if parts[0] == package and (f := _module_file(root, parts[1:])):
+                    found.append((f, None))
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = here[:len(here) - node.level + 1] if node.level <= len(here) + 1 else None
+                if base is None:
+                    continue
+                parts = base + (node.module.split('.') if node.module else [])
+            else:
+                parts = (node.module or '').split('.')
+                if parts[0] != package:
+                    continue
+                parts = parts[1:]
+            for alias in node.names:
+                if submodule := _module_file(root, [*parts, alias.name]):
+                    found.append((submodule, None))
+                elif module := _module_file(root, parts):
+                    found.append((module, {alias.name}))
+    return found
+
+
+def _constants(tree: ast.Module, names: set[str] | None) -> list[str]:
+    """The module-level assignments of ``names`` (of all if None), as syntax trees."""
+    out = []
+    for node in tree.body:
+        if isinstance(node, ast.Assign | ast.AnnAssign):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            bound = {n.id for t in targets for n in ast.walk(t) if isinstance(n, ast.Name)}
+            if names is None or bound & names:
+                out.append(ast.dump(node))
+    return out
+
+
+def key_material(root: str = PACKAGE_ROOT) -> list[tuple[str, str]]:
+    """What the key hashes, as (path relative to ``root``, text) pairs.
+
+    The full source of every kernel module (one importing ``_jit``) and of ``_jit`` itself; the
+    module-level assignments that kernel modules import from other modules of the package
+    (numba freezes globals into the machine code); and where each NamedTuple class of the
+    package is defined (the cache index records argument types by module and name, so a moved
+    class would make numba fail to read the index)."""
+    jit_file = os.path.join(root, '_jit.py')
+    sources: dict[str, str] = {}
+    for folder, dirs, files in os.walk(root):
+        dirs[:] = sorted(d for d in dirs if not d.startswith(('.', '__')))
+        for name in sorted(files):
+            if name.endswith('.py'):
+                path = os.path.join(folder, name)
+                with open(path, encoding='utf-8') as f:
+                    sources[path] = f.read()
+    material = []
+    trees: dict[str, ast.Module] = {}
+    imports: dict[str, list] = {}
+    for path, source in sources.items():
+        rel = os.path.relpath(path, root)
+        if path != jit_file and re.search(r'^(?:from|import)\s.*\b_jit\b', source, re.M):
+            trees[path] = ast.parse(source, path)
+            imports[path] = _package_imports(root, rel, trees[path])
+        material += [(rel, f'NamedTuple {m}')
+                     for m in re.findall(r'^class (\w+)\(\s*(?:typing\.)?NamedTuple\b', source,
+                                         re.M)]
+    kernels = {path for path, found in imports.items() if any(f == jit_file for f, _ in found)}
+    kernels.add(jit_file)
+    for path in sorted(kernels):
+        material.append((os.path.relpath(path, root), sources[path]))
+    for path in sorted(kernels - {jit_file}):
+        for module, names in imports[path]:
+            if module in kernels or module not in sources:
+                continue
+            tree = trees.get(module) or ast.parse(sources[module], module)
+            trees[module] = tree
+            material += [(os.path.relpath(module, root), text)
+                         for text in _constants(tree, names)]
+    return sorted(set(material))
+
+
+def cache_key(root: str = PACKAGE_ROOT) -> str:
+    """The name of the key directory: the kernel sources' hash with the versions of everything
+    that shapes the machine code."""
+    h = hashlib.sha256()
+    for part in (sys.implementation.cache_tag, getattr(sys, 'abiflags', ''),
+                 numba.__version__, np.__version__):
+        h.update(part.encode() + b'\0')
+    for rel, text in key_material(root):
+        h.update(rel.replace(os.sep, '/').encode() + b'\0' + text.encode() + b'\0')
+    return f'{sys.implementation.cache_tag}-numba{numba.__version__}-{h.hexdigest()[:16]}'
+
+
+def key_dir() -> Path:
+    """This package's key directory; marks it used, and makes room if it is new.
+
+    Raises OSError (unwritable, unreadable) or SyntaxError (a module being edited)."""
+    found = _key_dir()
+    if isinstance(found, Exception):
+        raise found
+    return found
+
+
+@functools.cache
+def _key_dir() -> Path | Exception:
+    # Once per process, failure included: every kernel's decoration asks.
+    try:
+        return _make_key_dir()
+    except (OSError, SyntaxError, UnicodeDecodeError) as e:
+        return e
+
+
+def _make_key_dir() -> Path:
+    path = cache_root() / cache_key()
+    new = not path.is_dir()
+    path.mkdir(parents=True, exist_ok=True)
+    (path / _LAST_USED).touch()
+    if new:
+        _prune(path.parent, keep=path.name)
+    return path
+
+
+def _prune(root: Path, keep: str) -> None:
+    def last_used(d: Path) -> float:
+        try:
+            return (d / _LAST_USED).stat().st_mtime
+        except OSError:
+            return 0.0
+
+    # Only directories named like keys: the root may be a directory the user shares.
+    others = sorted((d for d in root.iterdir()
+                     if d.name != keep and _KEY_DIR.match(d.name) and d.is_dir()),
+                    key=last_used, reverse=True)
+    # A process still using a removed key only recompiles: numba recreates the directory on
+    # save and treats missing cache files as misses.
+    for d in others[_KEEP:]:
+        shutil.rmtree(d, ignore_errors=True)
+
+
+def _warn(message: str) -> None:
+    if not _state['warned']:
+        _state['warned'] = True
+        print(f'{PACKAGE}: {message}', file=sys.stderr, flush=True)
+
+
+def _make_locator(base: type) -> type:
+    class PackageLocator(base):
+        """Caches the functions of files under ``PACKAGE_ROOT`` in the key directory, at the
+        file's folder relative to the package (two ``_kernels.py`` would clash otherwise), with
+        the key as the source stamp, so that the same sources at any path share one cache."""
+
+        def __init__(self, py_func, py_file: str, rel: str, key_path: Path) -> None:
+            self._py_file = py_file  # numba's warnings about uncachable functions read it
+            self._lineno = py_func.__code__.co_firstlineno
+            self._cache_path = str(key_path.joinpath(*Path(rel).parent.parts))
+            self._stamp = key_path.name
+
+        def get_cache_path(self) -> str:
+            return self._cache_path
+
+        def get_source_stamp(self) -> str:
+            return self._stamp
+
+        def get_disambiguator(self) -> str:
+            return str(self._lineno)
+
+        @classmethod
+        def from_function(cls, py_func, py_file: str):
+            try:
+                rel = os.path.relpath(os.path.abspath(py_file), PACKAGE_ROOT)
+            except ValueError:  # another drive
+                return None
+            if rel.startswith(os.pardir) or not rel.endswith('.py'):
+                return None
+            try:
+                self = cls(py_func, py_file, rel, key_dir())
+                self.ensure_cache_path()
+            except (OSError, SyntaxError, UnicodeDecodeError) as e:
+                _warn(f'no kernel cache in {cache_root()} ({e}); numba caches beside the '
+                      'modules instead')
+                return None  # numba's own locators are next in line
+            _state['notice_dir'] = key_dir()
+            return self
+
+    return PackageLocator
+
+
+def _listen_for_compiles() -> None:
+    from numba.core import event
+
+    class Notice(event.Listener):
+        def on_start(self, ev) -> None:
+            if _state['noticed']:
+                return
+            py_func = getattr((ev.data or {}).get('dispatcher'), 'py_func', None)
+            filename = getattr(getattr(py_func, '__code__', None), 'co_filename', '')
+            if not os.path.abspath(filename).startswith(PACKAGE_ROOT + os.sep):
+                return
+            _state['noticed'] = True
+            where = _state['notice_dir'] or '__pycache__ beside the modules'
+            print(f'{PACKAGE}: compiling numba kernels for first use (about {_COLD_COMPILE}, '
+                  f'cached in {where})', file=sys.stderr, flush=True)
+
+        def on_end(self, ev) -> None:
+            pass
+
+    event.register('numba:compile', Notice())
+
+
+def install() -> bool:
+    """Route this package's kernels to the keyed cache and announce a first compile.
+
+    Returns False, after one line on stderr, if this numba lacks the internals the locator
+    builds on; kernels then use numba's own ``cache=True`` (beside each module)."""
+    try:
+        _listen_for_compiles()
+    except (ImportError, AttributeError, TypeError):
+        pass  # a notice only
+    try:
+        from numba.core import caching
+        impl = getattr(caching, 'CacheImpl', None) or caching._CacheImpl
+        locators = impl._locator_classes
+        base = caching._CacheLocator
+    except (ImportError, AttributeError) as e:
+        _warn(f'numba {numba.__version__} has no cache locator hook ({e}); kernels are '
+              'cached beside their modules')
+        return False
+    if not any(getattr(c, '_feeder_sim_root', None) == PACKAGE_ROOT for c in locators):
+        locator = _make_locator(base)
+        locator._feeder_sim_root = PACKAGE_ROOT
+        locators.insert(0, locator)
+    return True
+
+
+# Before any kernel is decorated: numba picks a function's cache locator at decoration time.
+install()

@@ -1,0 +1,181 @@
+"""The compiled-kernel cache: keyed on the kernel sources, shared by copies at any path, announced.
+
+Each run is a fresh interpreter on a copy of the package (plus a two-file probe: a kernel
+calling a kernel of another module) with its own cache directory, so nothing here reads or
+writes the caches of the source tree or of the user.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+import re
+import shutil
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from feeder_sim import _jit
+
+PACKAGE = Path(_jit.PACKAGE_ROOT)
+NOTICE = 'compiling numba kernels for first use'
+
+CALLEE = '''
+from feeder_sim._jit import inner
+
+
+@inner
+def scale(x):
+    return {factor} * x
+'''
+
+CALLER = '''
+from feeder_sim._jit import jit
+from feeder_sim._probe.callee import scale
+
+
+@jit
+def probe(x):
+    return scale(x) + 1.0
+'''
+
+RUN = '''
+import json
+from feeder_sim import _jit
+from feeder_sim._probe.caller import probe
+value = probe(3.0)
+print(json.dumps({'value': value, 'hits': sum(probe.stats.cache_hits.values()),
+                  'misses': sum(probe.stats.cache_misses.values()),
+                  'cache_path': probe.stats.cache_path, 'key_dir': str(_jit._key_dir()),
+                  'file': _jit.__file__}))
+'''
+
+
+def copy_package(dest: Path, factor: int = 2) -> Path:
+    """A copy of the package with the probe at ``dest/feeder_sim``; returns ``dest``."""
+    shutil.copytree(PACKAGE, dest / 'feeder_sim',
+                    ignore=shutil.ignore_patterns('__pycache__', '*.pyc'))
+    probe = dest / 'feeder_sim' / '_probe'
+    probe.mkdir()
+    (probe / '__init__.py').write_text('')
+    (probe / 'callee.py').write_text(CALLEE.format(factor=factor))
+    (probe / 'caller.py').write_text(CALLER)
+    return dest
+
+
+def run(tree: Path, cache: Path, code: str = RUN) -> tuple[dict | None, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith(('NUMBA_', 'FEEDER_SIM'))}
+    env.update(PYTHONPATH=str(tree), FEEDER_SIM_CACHE_DIR=str(cache))
+    # cwd: not the source tree, whose feeder_sim would shadow the copy
+    proc = subprocess.run([sys.executable, '-c', code], cwd=tree, env=env, capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    out = proc.stdout.strip().splitlines()
+    return (json.loads(out[-1]) if out else None), proc.stderr
+
+
+def test_cold_warm_relocated_and_a_changed_callee(tmp_path):
+    cache = tmp_path / 'cache'
+    first = copy_package(tmp_path / 'first')
+    # Key directories of earlier sources, least recently used first; and a file of the user's.
+    old = [cache / f'cpython-311-numba0.1-{i:016x}' for i in range(6)]
+    for i, d in enumerate(old):
+        d.mkdir(parents=True)
+        (d / '.last_used').touch()
+        os.utime(d / '.last_used', (1e9 + i, 1e9 + i))
+    (cache / 'notes').mkdir()
+
+    cold, err = run(first, cache)
+    assert cold['file'].startswith(str(first))
+    assert (cold['value'], cold['hits'], cold['misses']) == (7.0, 0, 1)
+    key_dir = Path(cold['key_dir'])
+    assert key_dir.parent == cache
+    assert key_dir.name == _jit.cache_key(str(first / 'feeder_sim'))
+    # the module's folder mirrored under the key: two modules of one name cannot clash
+    assert Path(cold['cache_path']) == key_dir / '_probe'
+    assert sorted(p.name.split('-')[0] for p in key_dir.glob('_probe/*.nbi')) == \
+        ['callee.scale', 'caller.probe']
+    notices = [line for line in err.splitlines() if NOTICE in line]
+    assert len(notices) == 1, err
+    where = re.escape(str(key_dir))
+    assert re.fullmatch(rf'feeder_sim: {NOTICE} \(about .+ s, cached in {where}\)', notices[0])
+    assert sorted(p.name for p in cache.iterdir()) == sorted(
+        [key_dir.name, 'notes'] + [d.name for d in old[-_jit._KEEP:]])
+
+    warm, err = run(first, cache)
+    assert (warm['value'], warm['hits'], warm['misses']) == (7.0, 1, 0)
+    assert NOTICE not in err
+
+    # the same sources at another path: same key, loaded without compiling
+    moved = tmp_path / 'moved'
+    shutil.copytree(first, moved)
+    shutil.rmtree(first)
+    relocated, err = run(moved, cache)
+    assert relocated['file'].startswith(str(moved))
+    assert relocated['key_dir'] == str(key_dir)
+    assert (relocated['value'], relocated['hits'], relocated['misses']) == (7.0, 1, 0)
+    assert NOTICE not in err
+
+    # only the callee changes, in its own file: the caller is not served stale machine code
+    callee = moved / 'feeder_sim' / '_probe' / 'callee.py'
+    callee.write_text(CALLEE.format(factor=3))
+    changed, err = run(moved, cache)
+    assert changed['key_dir'] != str(key_dir)
+    assert (changed['value'], changed['hits'], changed['misses']) == (10.0, 0, 1)
+    assert NOTICE in err
+
+
+def edited(root: Path, rel: str, old: str, new: str) -> str:
+    path = root / rel
+    text = path.read_text()
+    assert old in text
+    path.write_text(text.replace(old, new, 1))
+    try:
+        return _jit.cache_key(str(root))
+    finally:
+        path.write_text(text)
+
+
+def test_the_key_follows_kernel_sources_and_their_constants_only(tmp_path):
+    root = copy_package(tmp_path)
+    shutil.rmtree(root / 'feeder_sim' / '_probe')
+    root = root / 'feeder_sim'
+    key = _jit.cache_key(str(root))
+    assert key == _jit.cache_key(str(root))
+    kernel_modules = {rel for rel, text in _jit.key_material(str(root))
+                      if rel.endswith('.py') and '_jit import' in text}
+    assert {'contact/_lcp_kernels.py', 'contact/_island_kernels.py',
+            'stepping/_time_stepping_kernels.py'} <= kernel_modules
+    # any kernel module, anywhere in the package
+    for rel in kernel_modules:
+        assert edited(root, rel, '\n', '\n# edited\n') != key, rel
+    # a constant that kernels import from a plain module is frozen into their machine code
+    assert edited(root, 'model/world.py', 'FIXED, DRIVEN, MOVING = 0, 1, 2',
+                  'FIXED, DRIVEN, MOVING = 0, 2, 1') != key
+    # a module without kernels, and a comment beside those constants, leave the key alone
+    assert edited(root, 'cli.py', '\n', '\n# edited\n') == key
+    assert edited(root, 'model/world.py', 'FIXED, DRIVEN, MOVING = 0, 1, 2',
+                  'FIXED, DRIVEN, MOVING = 0, 1, 2  # edited') == key
+    # a renamed kernel module cannot be served entries that name the old module
+    (root / 'contact' / '_lcp_kernels.py').rename(root / 'contact' / '_lcp_kernels2.py')
+    assert _jit.cache_key(str(root)) != key
+
+
+@pytest.mark.parametrize('case', ['numba without the hook', 'unwritable cache directory'])
+def test_falls_back_to_numbas_own_cache_with_one_line(tmp_path, case):
+    tree = copy_package(tmp_path / 'tree')
+    cache = tmp_path / 'cache'
+    code = RUN
+    if case == 'numba without the hook':
+        code = 'from numba.core import caching\ndel caching._CacheLocator\n' + code
+    else:
+        cache.write_text('a file where the cache directory should be')
+    result, err = run(tree, cache, textwrap.dedent(code))
+    assert result['value'] == 7.0
+    lines = err.splitlines()
+    assert len([line for line in lines if NOTICE not in line]) == 1, err
+    assert lines[0].startswith('feeder_sim: ')
+    assert Path(result['cache_path']) == tree / 'feeder_sim' / '_probe' / '__pycache__'
