@@ -36,6 +36,7 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(PY) benchmarks/conveying.py
 	$(PY) benchmarks/pile.py
+	$(PY) benchmarks/throughput.py
 	$(PY) benchmarks/node.py
 	$(PY) benchmarks/methods.py
 
