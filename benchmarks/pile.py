@@ -74,15 +74,20 @@ def pile_scene(n_parts: int, seed: int = 1) -> dict:
     return scene
 
 
-def escaped(sim: Simulator) -> int:
-    """Parts whose centre left the region between the walls above the track surface."""
+def outside_walls(sim: Simulator, position: np.ndarray, height_m: float = 0.19) -> int:
+    """Parts (centres ``position``, m) that left the region between the walls, above the
+    track surface and below ``height_m``."""
     origin, axis = sim.world.track_frame()
-    idx = sim.part_indices
-    rel = sim.state.position[idx] - origin
+    rel = position - origin
     along = rel @ axis
     up = rel @ np.array([-axis[1], axis[0]])
-    inside = (np.abs(along) < 0.5 * TRACK_LENGTH) & (up > -1e-3) & (up < 0.19)
+    inside = (np.abs(along) < 0.5 * TRACK_LENGTH) & (up > -1e-3) & (up < height_m)
     return int(np.count_nonzero(~inside))
+
+
+def escaped(sim: Simulator) -> int:
+    """Parts whose centre left the region between the walls above the track surface."""
+    return outside_walls(sim, sim.state.position[sim.part_indices])
 
 
 def run(n_parts: int, duration: float, chunk: float = 0.05) -> dict:

@@ -44,15 +44,17 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / 'benchmarks'))
 
-from pile import pile_scene  # noqa: E402
+from pile import outside_walls, pile_scene, warm_up  # noqa: E402
 
 from feeder_sim.model.builders import build, conveyor  # noqa: E402
 from feeder_sim.simulator import Simulator  # noqa: E402
 
 CHUNK_S = 0.05
 WALL_HEIGHT_M = 1.0
+INSIDE_M = WALL_HEIGHT_M - 0.01     # a part's centre below the walls' top
 PYMUNK_SLOP_M = 1e-4
 CONVEYING_DT = 1e-4
+TARGETS = {'pile 10': 2.0, 'pile 200': 1.0, 'conveying 1': 1.0}   # ratio feeder_sim / pymunk
 
 
 def tall_walled_pile(n_parts: int) -> dict:
@@ -72,16 +74,6 @@ def conveying_scene() -> dict:
                     method='time_stepping', time_step=CONVEYING_DT, name='conveying_1')
 
 
-def outside_walls(sim: Simulator, position: np.ndarray) -> int:
-    """Parts (rows of ``position``, m) whose centre left the walled region of the pile."""
-    origin, axis = sim.world.track_frame()
-    rel = position - origin
-    along = rel @ axis
-    up = rel @ np.array([-axis[1], axis[0]])
-    inside = (np.abs(along) < 0.5) & (up > -1e-3) & (up < WALL_HEIGHT_M - 0.01)
-    return int(np.count_nonzero(~inside))
-
-
 # ------------------------------------------------------------------------------ feeder_sim
 def run_feeder(scene: dict, duration: float, walled: bool) -> dict:
     sim = Simulator(build(scene))
@@ -92,7 +84,7 @@ def run_feeder(scene: dict, duration: float, walled: bool) -> dict:
         sim.advance(k * CHUNK_S)
         wall += time.perf_counter() - t0
         if walled:
-            worst = max(worst, outside_walls(sim, sim.state.position[sim.part_indices]))
+            worst = max(worst, outside_walls(sim, sim.state.position[sim.part_indices], INSIDE_M))
     st = sim.stats
     return {'wall_per_sim_s': wall / sim.t, 'steps': st.steps, 'escaped': worst,
             'deepest_m': st.max_penetration_m, 'fallbacks': st.fallbacks,
@@ -102,8 +94,9 @@ def run_feeder(scene: dict, duration: float, walled: bool) -> dict:
 
 # ------------------------------------------------------------------------------ pymunk
 def pymunk_world(scene: dict):
-    """The scene's bodies in a pymunk space: (space, kinematic (body, drive, base) list,
-    dynamic bodies), with the drives and initial poses of feeder_sim's own world."""
+    """The scene's bodies in a pymunk space: (space, kinematic (body, drive) list, dynamic
+    bodies, feeder_sim's simulator of the scene), with the drives and initial poses (drive
+    displacement at t = 0 included) of feeder_sim's own world."""
     import pymunk
 
     sim = Simulator(build(scene))
@@ -121,8 +114,7 @@ def pymunk_world(scene: dict):
             dynamic.append(body)
         else:
             body = pymunk.Body(body_type=pymunk.Body.KINEMATIC)
-            drive = world.drives[i]
-            kinematic.append((body, drive, np.array(sim.state.position[i])))
+            kinematic.append((body, world.drives[i]))
         body.position = tuple(sim.state.position[i])
         body.angle = float(sim.state.angle[i])
         shape = pymunk.Poly(body, verts, radius=0.0)
@@ -146,13 +138,10 @@ def pymunk_deepest(dynamic) -> float:
 
 def run_pymunk(scene: dict, duration: float, dt: float, walled: bool) -> dict:
     space, kinematic, dynamic, sim = pymunk_world(scene)
-    for body, drive, base in kinematic:
-        if drive is not None:
-            body.position = tuple(base + drive.motion(0.0)[0] * drive.direction)
     # the drives' sinusoids, evaluated inline as a pymunk user would (no command changes here)
     driven = [(body, d.amplitude_m / dt, 2 * math.pi * d.frequency_hz, d.phase_rad,
                float(d.direction[0]), float(d.direction[1]))
-              for body, d, _ in kinematic if d is not None]
+              for body, d in kinematic if d is not None]
     n_chunk = int(round(CHUNK_S / dt))
     t, wall, worst, deepest = 0.0, 0.0, 0, 0.0
     for _ in range(int(round(duration / CHUNK_S))):
@@ -167,7 +156,8 @@ def run_pymunk(scene: dict, duration: float, dt: float, walled: bool) -> dict:
         wall += time.perf_counter() - t0
         deepest = max(deepest, pymunk_deepest(dynamic))
         if walled:
-            worst = max(worst, outside_walls(sim, np.array([b.position for b in dynamic])))
+            worst = max(worst, outside_walls(sim, np.array([b.position for b in dynamic]),
+                                                INSIDE_M))
     finite = all(math.isfinite(b.position.x) and math.isfinite(b.position.y) for b in dynamic)
     return {'wall_per_sim_s': wall / t, 'steps': int(round(t / dt)), 'escaped': worst,
             'deepest_m': deepest, 'finite': finite}
@@ -180,16 +170,6 @@ def cases(parts: list[int], duration: float, conveying_s: float) -> list[dict]:
     out.append({'name': 'conveying 1', 'parts': 1, 'dt': CONVEYING_DT,
                 'duration': conveying_s, 'walled': False, 'scene': conveying_scene()})
     return out
-
-
-def warm_up() -> float:
-    """Load (or compile, on a cold cache) the kernels before any timing."""
-    t0 = time.perf_counter()
-    for direct_max_rows in (48, 0):         # 0: every island through the PGS kernel
-        sim = Simulator(build(pile_scene(12)))
-        sim._stepper.settings.direct_max_rows = direct_max_rows
-        sim.advance(0.15)
-    return time.perf_counter() - t0
 
 
 def plot(rows: list[dict], path: Path) -> None:
@@ -220,9 +200,6 @@ def plot(rows: list[dict], path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
-
-
-TARGETS = {'pile 10': 2.0, 'pile 200': 1.0, 'conveying 1': 1.0}
 
 
 def main() -> None:
