@@ -432,12 +432,15 @@ def contact_rows(a, b, point, normal, gap, order, starts, position, v_end, w_end
             b_n[q] = newton - (push if push < push_max or push != push else push_max)
         else:
             b_n[q] = vn_free[i] + 2.0 * g / h
-        # friction_rows (Kawachi): the pre-step slip picks static or one-sided dynamic
+        # friction_rows(restick=True): the pre-step slip picks static or dynamic friction
+        # against the slip; where mu_s > mu_d, mu_s on the side that holds the contact once
+        # it stops (else 0)
         sliding = abs(vt_pre) > slip_tol
         mu = mu_d[q] if sliding else mu_s[q]
-        box[q] = mu > 0.0 and (friction_impulse or not colliding[q])
-        mu_lo[q] = 0.0 if sliding and vt_pre < 0 else mu
-        mu_hi[q] = 0.0 if sliding and vt_pre > 0 else mu
+        hold = mu_s[q] if mu_s[q] > mu_d[q] else 0.0
+        mu_lo[q] = hold if sliding and vt_pre < 0 else mu
+        mu_hi[q] = hold if sliding and vt_pre > 0 else mu
+        box[q] = (mu_lo[q] > 0.0 or mu_hi[q] > 0.0) and (friction_impulse or not colliding[q])
     return (keep, tangent, ra, rb, mu_s, mu_d, rest, v_n, v_t, slip, pile, colliding, b_n, box,
             mu_lo, mu_hi, gap_min)
 

@@ -63,22 +63,59 @@ def contact_set(world: World, state: State, contacts: Contacts) -> ContactSet:
 
 
 def friction_rows(cs: ContactSet, v_t: np.ndarray, colliding: np.ndarray, friction_impulse: bool,
-                  slip_tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  slip_tol: float, restick: bool = False
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Friction treatment and bounds (mu_lo, mu_hi) of every contact for an impulse LCP.
 
-    Kawachi's rule: the pre-impact slip picks static (zero slip) or dynamic friction, and
-    dynamic friction is one-sided so it cannot reverse the slip.
+    Kawachi's rule: the pre-impact slip ``v_t`` (m/s) picks static (zero slip) or dynamic
+    friction, and dynamic friction is one-sided so it cannot reverse the slip. That suits an
+    impact, whose free velocities are the pre-impact ones. Over a time step (``restick``)
+    gravity and the drives act too, and can carry the slip through zero within the step.
+    Where ``mu_static > mu_dynamic`` the side that holds the contact once it has stopped is
+    then bounded by ``mu_static``, so a part that comes to rest where static friction can
+    hold it, but dynamic friction could not, sticks; ``second_pass`` makes that side
+    one-sided again where the slip reverses anyway. (With ``mu_static == mu_dynamic`` the
+    one-sided rule already resticks: the reversed slip is stopped in the next step.)
     """
     k = cs.n
     friction = np.full(k, BOX)
     sliding = np.abs(v_t) > slip_tol
     mu = np.where(sliding, cs.mu_dynamic, cs.mu_static)
-    friction[mu <= 0.0] = NONE
+    hold = np.where(cs.mu_static > cs.mu_dynamic, cs.mu_static, 0.0) if restick else 0.0
+    mu_lo = np.where(sliding & (v_t < 0), hold, mu)
+    mu_hi = np.where(sliding & (v_t > 0), hold, mu)
+    friction[np.maximum(mu_lo, mu_hi) <= 0.0] = NONE
     if not friction_impulse:
         friction[colliding] = NONE
-    mu_lo = np.where(sliding & (v_t < 0), 0.0, mu)
-    mu_hi = np.where(sliding & (v_t > 0), 0.0, mu)
     return friction, mu_lo, mu_hi
+
+
+def second_pass(lo: np.ndarray, hi: np.ndarray, x_n: np.ndarray, x_t: np.ndarray,
+                v_t_new: np.ndarray, mu_static: np.ndarray, mu_dynamic: np.ndarray,
+                may_slide: np.ndarray, slip_tol: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Kawachi's second pass over a step's friction answer: ``(redo, lo, hi)``.
+
+    A contact that slips at the end of the step (``|v_t_new| > slip_tol``, m/s) with its
+    impulse ``x_t`` on a bound set by ``mu_static`` slid during the step, so that bound is
+    wrong: a static contact driven to its bound slides on with ``mu_dynamic``, one-sided
+    against the new slip; a sliding contact whose slip reversed although its holding side
+    allowed ``mu_static`` could not stick, and its holding side goes back to Kawachi's
+    one-sided 0 (the friction of the step in which a slip reverses is then unbiased:
+    ``friction_rows`` without ``restick``). ``may_slide``: contacts with a friction row and
+    ``mu_dynamic < mu_static`` (for the others a second pass changes nothing)."""
+    held = may_slide & (x_n > 0)
+    limit_lo = x_t <= -lo * x_n * (1 - 1e-9)
+    limit_hi = x_t >= hi * x_n * (1 - 1e-9)
+    static = held & (lo == hi) & (lo > 0) & (limit_lo | limit_hi) \
+        & (np.abs(v_t_new) > slip_tol)
+    back_hi = held & ~static & (hi == mu_static) & (hi > 0) & limit_hi & (v_t_new < -slip_tol)
+    back_lo = held & ~static & (lo == mu_static) & (lo > 0) & limit_lo & (v_t_new > slip_tol)
+    lo = np.where(static, np.where(v_t_new > 0, mu_dynamic, 0.0), lo)
+    hi = np.where(static, np.where(v_t_new < 0, mu_dynamic, 0.0), hi)
+    hi = np.where(back_hi, 0.0, hi)
+    lo = np.where(back_lo, 0.0, lo)
+    return static | back_hi | back_lo, lo, hi
 
 
 def islands(world: World, cs: ContactSet) -> list[tuple[np.ndarray, np.ndarray]]:

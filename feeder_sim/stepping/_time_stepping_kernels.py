@@ -438,21 +438,30 @@ def _solve(n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b_t, 
                         n_msgs[0] += 1
             ints[I_PGS] += n_large
             floats[F_MAX_PGS_VRES] = _larger(floats[F_MAX_PGS_VRES], _nan_max(vres, large))
-        # A static contact driven to its bound slides within the step: from then on the
-        # dynamic coefficient acts, one-sided in the direction the contact now slips.
+        # dynamics.second_pass
         if not (again and any_slide):
             break
         redo = np.zeros(n_isl, np.bool_)
         any_saturated = False
         for q in range(k):
             i = isl[q]
-            if (may_slide[q] and lo[q] == hi[q] and lo[q] > 0
-                    and abs(x_t[q]) >= lo[q] * x_n[q] * (1 - 1e-9) and x_n[q] > 0
-                    and abs(v_t_new[q]) > st.slip_tol_mps and (small[i] or large[i])):
+            if not (may_slide[q] and x_n[q] > 0 and (small[i] or large[i])):
+                continue
+            limit_lo = x_t[q] <= -lo[q] * x_n[q] * (1 - 1e-9)
+            limit_hi = x_t[q] >= hi[q] * x_n[q] * (1 - 1e-9)
+            v = v_t_new[q]
+            if lo[q] == hi[q]:
+                if lo[q] > 0 and (limit_lo or limit_hi) and abs(v) > st.slip_tol_mps:
+                    lo[q] = mu_d[q] if v > 0 else 0.0
+                    hi[q] = mu_d[q] if v < 0 else 0.0
+                    redo[i] = True
+            elif hi[q] == mu_s[q] and hi[q] > 0 and limit_hi and v < -st.slip_tol_mps:
+                hi[q] = 0.0
                 redo[i] = True
-                any_saturated = True
-                lo[q] = mu_d[q] if v_t_new[q] > 0 else 0.0
-                hi[q] = mu_d[q] if v_t_new[q] < 0 else 0.0
+            elif lo[q] == mu_s[q] and lo[q] > 0 and limit_lo and v > st.slip_tol_mps:
+                lo[q] = 0.0
+                redo[i] = True
+            any_saturated = any_saturated or redo[i]
         if not any_saturated:
             break
         for i in range(n_isl):

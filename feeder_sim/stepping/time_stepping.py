@@ -23,8 +23,15 @@ penetration, capped at ``push_max_mps`` (a jammed queue left 0.4 mm deep was oth
 at 0.8 m/s).
 
 Friction follows Kawachi: static bounds ``mu_s p_N`` when the pre-step slip is zero; when it
-slides, a one-sided bound ``mu_d p_N`` that stops the slip but never reverses it. A static
-contact that saturates slides during the step, so it is solved again with ``mu_d``.
+slides, a one-sided bound ``mu_d p_N`` against the slip. Gravity and the drives act during the
+step, so a slip can stop within it: where ``mu_s > mu_d`` the side that holds a contact once
+stopped is bounded by ``mu_s p_N``, so a part that comes to rest where static friction can
+hold it sticks from that step on (``dynamics.friction_rows(restick=True)``; with one-sided
+``mu_d`` the step would leave a reversed slip and ``mu_d`` would act from then on). Kawachi's
+second pass (``dynamics.second_pass``) solves an island again where a bound set by ``mu_s``
+was reached by a contact that slips at the end of the step: a static contact that saturates
+slides, one-sided with ``mu_d``; a sliding contact whose slip reverses although ``mu_s``
+could hold it is one-sided again, as without the holding side.
 Constant-acceleration motion (a block sliding on an incline) is integrated exactly.
 
 Which solver serves which island
@@ -103,6 +110,7 @@ from feeder_sim.contact.dynamics import (
     friction_rows,
     island_jacobian,
     islands,
+    second_pass,
     SolverStats,
 )
 from feeder_sim.model.world import State, World
@@ -161,25 +169,21 @@ def solve_impulses(world: World, cs: ContactSet, bodies: np.ndarray, b_n: np.nda
     b_full = np.concatenate([b_n, v_t_free])
     friction, mu_lo, mu_hi = friction_rows(
         cs, v_t_pre, colliding, friction_impulse,
-        settings.slip_tol_mps if slip_tol is None else slip_tol)
+        settings.slip_tol_mps if slip_tol is None else slip_tol, restick=True)
+    may_slide = (friction == BOX) & (cs.mu_dynamic < cs.mu_static)
     impulse = None
     for _ in range(2):
         asm = assemble(W, b_full, friction, mu_lo, mu_hi)
         result = lcp.solve(asm.problem, tol=settings.lcp_tol)
         stats.record(result)
         impulse = asm.full(result.x)
-        # A static contact driven to its bound slides within the step: from then on the
-        # dynamic coefficient acts, one-sided in the direction the contact now slips.
         c = cs.n
-        p_n, p_t = impulse[:c], impulse[c:]
         v_t_new = v_t_free + (W @ impulse)[c:]
-        static = (friction == BOX) & (mu_lo == mu_hi) & (mu_lo > 0)
-        saturated = static & (np.abs(p_t) >= mu_lo * p_n * (1 - 1e-9)) & (p_n > 0) \
-            & (np.abs(v_t_new) > settings.slip_tol_mps) & (cs.mu_dynamic < cs.mu_static)
-        if not saturated.any():
+        redo, mu_lo, mu_hi = second_pass(mu_lo, mu_hi, impulse[:c], impulse[c:], v_t_new,
+                                         cs.mu_static, cs.mu_dynamic, may_slide,
+                                         settings.slip_tol_mps)
+        if not redo.any():
             break
-        mu_lo = np.where(saturated, np.where(v_t_new > 0, cs.mu_dynamic, 0.0), mu_lo)
-        mu_hi = np.where(saturated, np.where(v_t_new < 0, cs.mu_dynamic, 0.0), mu_hi)
     return impulse, jac.velocity_change(impulse)
 
 
@@ -780,7 +784,8 @@ class TimeStepper(StepperBase):
         b_n = np.where(~pile, np.where(spec, v_n_free + (gap + allow) / h, newton),
                        np.where(touching, newton - push, v_n_free + 2.0 * gap / h))
         friction, mu_lo, mu_hi = friction_rows(cs, v_t_pre, colliding,
-                                               self.spec.friction_impulse, slip_tol)
+                                               self.spec.friction_impulse, slip_tol,
+                                               restick=True)
         return (keep, cs.tangent, cs.r_a, cs.r_b, cs.mu_static, cs.mu_dynamic, cs.restitution,
                 v_n_free, v_t_free, v_t_pre, pile, colliding, b_n, friction == BOX, mu_lo, mu_hi,
                 float(gap.min(initial=np.inf)))
@@ -796,9 +801,9 @@ class TimeStepper(StepperBase):
         data = geo.kernel_args + (b_n, b_t, box)
         lens = starts[1:] - starts[:-1]
         isl = np.repeat(np.arange(len(lens)), lens)
-        mu_d = cs.mu_dynamic[order]
+        mu_s, mu_d = cs.mu_static[order], cs.mu_dynamic[order]
         # contacts Kawachi's second pass may concern (none where mu_d == mu_s)
-        may_slide = box & (mu_d < cs.mu_static[order])
+        may_slide = box & (mu_d < mu_s)
         rows = lens + np.add.reduceat(box, starts[:-1])
         small = todo & (rows <= st.direct_max_rows)
         large = todo & ~small
@@ -838,21 +843,16 @@ class TimeStepper(StepperBase):
                         stats.messages.append(
                             f'pgs: velocity residual {vres[i]:.3g} m/s (lcp residual '
                             f'{res[i]:.3g}) after {work[i]} sweeps ({rows[i]} rows)')
-            # A static contact driven to its bound slides within the step: from then on the
-            # dynamic coefficient acts, one-sided in the direction the contact now slips.
             if not (again and may_slide.any()):
                 break
             solved = (small | large)[isl] & ~failed[isl]
-            saturated = may_slide & (lo == hi) & (lo > 0) \
-                & (np.abs(x_t) >= lo * x_n * (1 - 1e-9)) & (x_n > 0) \
-                & (np.abs(v_t_new) > st.slip_tol_mps) & solved
+            saturated, lo, hi = second_pass(lo, hi, x_n, x_t, v_t_new, mu_s, mu_d,
+                                            may_slide & solved, st.slip_tol_mps)
             if not saturated.any():
                 break
             redo = np.zeros(len(lens), bool)
             redo[isl[saturated]] = True
             small, large = small & redo, large & redo
-            lo = np.where(saturated, np.where(v_t_new > 0, mu_d, 0.0), lo)
-            hi = np.where(saturated, np.where(v_t_new < 0, mu_d, 0.0), hi)
         p_n[order] = x_n
         p_t[order] = x_t
         return np.flatnonzero(failed)
