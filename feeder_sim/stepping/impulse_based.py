@@ -93,6 +93,20 @@ default envelope); it vanishes only as ``sqrt(eps)``. Where sticking at a corner
 (``|K_TN| > mu_static K_TT``, e.g. 0.75 for the corner of a 2:1 box) each micro-collision ends
 with a small reversed slip as well.
 
+Restick
+-------
+A part that comes to rest on a slope steeper than ``atan(mu_dynamic)`` but within
+``atan(mu_static)`` is held by static friction. Between two micro-collisions nothing holds it,
+so it arrives at each one slipping by what gravity and the drives built up in the flight
+(about ``2 tan(theta) v_b``). Met with dynamic friction, that slip is only partly taken back
+and grows until the part slides off at ``g (sin - mu_d cos)``. A micro-collision of a resting
+contact therefore uses ``mu_static`` on its sliding ray while the slip is at most
+``2 mu_static`` times the micro-collision speed ``micro_speed_factor * v_b`` (the slip a holdable
+slope can build in one hop, with a factor 2 for hops that start late): the part sticks and only
+creeps as above. The price is bounded by the same speed: a part that really slides at less
+than ``4 mu_static v_b`` (1 mm/s at mu_static = 0.6) is stopped by static friction, and a slip
+that must reverse (a slope static friction cannot hold) starts that much late.
+
 The whole loop (contacts, sweeps, time of impact, free flight) runs in one compiled kernel per
 set of candidates; Python re-detects candidates (bounding boxes within the candidate margin,
 driven bodies widened by their stroke) only when a dynamic body has moved half that margin.
@@ -466,6 +480,11 @@ def _resolve(t, pos, ang, vel, om, inv_mass, inv_inertia, cv_body, cv_local, cp_
             micro = -un <= micro_speed
             if friction_on or micro:
                 mu_d, mu_s = c_mu_d[c], c_mu_s[c]
+                if micro and abs(ut) <= 2.0 * mu_s * micro_speed:
+                    # a resting contact: the slip is what gravity and the drives built up
+                    # in the flight since the last micro-collision, which static friction
+                    # would have held (see "Restick" in the module docstring)
+                    mu_d = max(mu_d, mu_s)
             else:
                 mu_d = mu_s = 0.0
             pt, pn, _, _, phases, _ = _collide(geo[k, 6], geo[k, 7], geo[k, 8], ut, un, mu_d,
