@@ -120,6 +120,14 @@ def test_mu_2_incline_sticks(method):
     assert m['max_drift_m'] <= 1e-6
 
 
+@pytest.mark.parametrize('method', methods('restick_on_slope', (IB,)))
+def test_restick_on_slope(method):
+    # analytic stop at v0^2 / (2 g (sin + mu_d cos)); then static friction holds the box
+    m = run('restick_on_slope', method)
+    assert m['stop_error_m'] <= bound('restick_on_slope', 'stop_error_m', method)
+    assert m['creep_mps'] <= bound('restick_on_slope', 'creep_mps', method)
+
+
 @pytest.mark.parametrize('method', methods('mu_2_landing_stops', (IB,)))
 def test_mu_2_landing_stops_at_once(method):
     m = run('mu_2_landing_stops', method)

@@ -223,6 +223,50 @@ _register(_case(
                           'along the slope during every hop, so it creeps (0.7 mm in 1 s)'}))
 
 
+# A box launched up a slope that static friction can hold but dynamic friction cannot
+# (mu_d = 0.4 < tan 30 deg = 0.577 < mu_s = 0.6): it decelerates at g (sin + mu_d cos), stops
+# after v0^2 / (2 a) and must stay there
+_RESTICK_ANGLE, _RESTICK_SPEED = math.radians(30.0), 0.5
+_RESTICK_MU_S, _RESTICK_MU_D = 0.6, 0.4
+_RESTICK_DECEL = G * (math.sin(_RESTICK_ANGLE) + _RESTICK_MU_D * math.cos(_RESTICK_ANGLE))
+_RESTICK_STOP_S = _RESTICK_SPEED / _RESTICK_DECEL
+_RESTICK_STOP_M = _RESTICK_SPEED ** 2 / (2.0 * _RESTICK_DECEL)
+
+
+def _restick_bodies(_p) -> list[dict]:
+    mu = {'mu_static': _RESTICK_MU_S, 'mu_dynamic': _RESTICK_MU_D}
+    c, s = math.cos(_RESTICK_ANGLE), math.sin(_RESTICK_ANGLE)
+    return [{**ground(angle=_RESTICK_ANGLE), **mu},
+            {**box_part('box', 0.01, 0.005, (*on_slope(0.0, 0.005, _RESTICK_ANGLE),
+                                             _RESTICK_ANGLE),
+                        (_RESTICK_SPEED * c, _RESTICK_SPEED * s, 0.0)), **mu}]
+
+
+def _restick_measure(records: list[_Record], _p) -> dict[str, float]:
+    a = records[0].arrays()
+    along = a['position'][:, 0] @ np.array([math.cos(_RESTICK_ANGLE), math.sin(_RESTICK_ANGLE)])
+    along -= along[0]
+    t = a['t']
+    rest = t >= _RESTICK_STOP_S + 0.1
+    return {'stop_error_m': float(np.max(np.abs(along[rest] - _RESTICK_STOP_M))),
+            'creep_mps': float(abs(along[-1] - along[rest][0]) / (t[-1] - t[rest][0]))}
+
+
+_register(_case(
+    'restick_on_slope',
+    'a box launched up a 30 deg slope at 0.5 m/s (mu_d 0.4 < tan 30 deg < mu_s 0.6) stops '
+    f'after {_RESTICK_STOP_M * 1e3:.2f} mm and stays, 1 s',
+    _restick_bodies, _restick_measure,
+    [Criterion('stop_error_m', _steps(2e-5, 1e-8, 5e-4),
+               meaning='|distance from the analytic stop| after it, m (time stepping: '
+                       'within the last step\'s travel, a h^2)'),
+     Criterion('creep_mps', _steps(1e-9, 1e-8, 2.0 * math.tan(_RESTICK_ANGLE) * _MICRO_SPEED),
+               meaning='mean slip speed once stopped, m/s (impulse_based: nothing holds the '
+                       'part between micro-collisions, so it creeps at about tan(theta) '
+                       'sqrt(2 g eps), 0.25 mm/s)')],
+    steps=_STEPS_1MS, duration=1.0))
+
+
 def _landing_bodies(_p) -> list[dict]:
     # lands flat 0.1 mm below its start: the normal impulse m 1 m/s times mu = 2 is ten times
     # what stopping 0.2 m/s of slip needs, so Kawachi's friction impulse stops it at landing
