@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass, replace
+import logging
 import math
 import os
 
@@ -19,6 +20,8 @@ from feeder_sim.contact.dynamics import SolverStats
 from feeder_sim.model.scene import load_scene, METHODS, Scene
 from feeder_sim.model.world import State, World
 from feeder_sim.stepping import StepContacts, STEPPERS
+
+log = logging.getLogger('feeder_sim')
 
 
 @dataclass
@@ -136,6 +139,7 @@ class Simulator:
         self.scene = scene
         self.world = World.from_scene(scene)
         self.stats = SolverStats()
+        self._told: set[str] = set()     # kinds of inexact answers already logged
         self.state = self.world.initial_state()
         self._log = _ImpulseLog()
         self._settings = settings
@@ -162,6 +166,11 @@ class Simulator:
             raise ValueError(f't_end must be finite, got {t_end!r}')
         for report in self._stepper.advance(self.state, t_end):
             self._log.add(report)
+        for kind, line in self.stats.inexact().items():
+            if kind not in self._told:
+                # once per kind and run; the counts go on in the summary and /diagnostics
+                self._told.add(kind)
+                log.error('%s: by t = %.6f s, %s', self.scene.name, self.state.t, line)
 
     def command_vibration(self, amplitude_m: float, frequency_hz: float) -> None:
         """New amplitude (m) and frequency (Hz) for every vibrating body, from now on.

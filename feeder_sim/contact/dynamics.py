@@ -227,6 +227,9 @@ class SolverStats:
     events: int = 0
     energy_fixes: int = 0
     cascades: int = 0          # event cascades stepped past (event driven)
+    tangential_impacts: int = 0   # Painlevé sliding ended by an impulse (event driven)
+    frictionless_answers: int = 0  # LCPs whose fallback ladder ended without friction
+    unresolved_force_lcps: int = 0  # force LCPs without an answer after the Painlevé impulse
     islands: int = 0           # islands with contacts, summed over steps (time stepping)
     pgs_solves: int = 0        # LCPs answered by the large-island projected Gauss-Seidel
     max_pgs_velocity_residual_mps: float = 0.0   # worst PGS answer, m/s (see _island_kernels)
@@ -245,10 +248,23 @@ class SolverStats:
                 self.max_lcp_rows = m
         self.pivots += result.pivots
         self.fallbacks += result.fallbacks
+        self.frictionless_answers += result.method == 'frictionless'
         self.unconverged += not result.converged
         self.max_residual = max(self.max_residual, float(result.residual))
         if result.message and len(self.messages) < 20:
             self.messages.append(result.message)
+
+    def inexact(self) -> dict[str, str]:
+        """What a run must tell its user: per kind of answer that changed the physics, a
+        line (empty when every answer was exact)."""
+        out = {}
+        if self.frictionless_answers:
+            out['frictionless'] = (f'{self.frictionless_answers} contact LCPs answered without '
+                                   'friction by the last fallback: friction was lost there')
+        if self.unresolved_force_lcps:
+            out['unresolved'] = (f'{self.unresolved_force_lcps} contact force LCPs without an '
+                                 'answer after the Painlevé impulse: the fallback answer used')
+        return out
 
     def record_batch(self, rows: np.ndarray, pivots: np.ndarray, residual: np.ndarray,
                      converged: np.ndarray, method: str) -> None:

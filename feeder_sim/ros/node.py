@@ -342,6 +342,9 @@ class SimNode(Node):
             message = 'finished'
         if self._record_status.startswith('failed'):
             level, message = DiagnosticStatus.ERROR, f'recording {self._record_status}'
+        elif stats.inexact():
+            # a fallback changed the physics (friction lost): an error the user must see
+            level, message = DiagnosticStatus.ERROR, '; '.join(stats.inexact().values())
         elif stats.fallbacks or stats.unconverged:
             level, message = DiagnosticStatus.WARN, (
                 f'{stats.fallbacks} solver fallbacks, {stats.unconverged} unconverged solves')
@@ -361,6 +364,9 @@ class SimNode(Node):
             'lcp_solves': stats.lcp_solves,
             'solver_fallbacks': stats.fallbacks,
             'unconverged_solves': stats.unconverged,
+            'frictionless_answers': stats.frictionless_answers,
+            'unresolved_force_lcps': stats.unresolved_force_lcps,
+            'tangential_impacts': stats.tangential_impacts,
             'max_lcp_residual': float(stats.max_residual),
             'max_penetration_m': float(stats.max_penetration_m),
             'commands_accepted': self.commands_accepted,

@@ -451,7 +451,8 @@ def _mode_at_event(t, c, pos, ang, vel, om, model, world, tols, acc, stats):
             return fail
         _count(stats, x, res, pivots)
         a_rel = W @ f + b_full
-    keep, friction, sigma = kern.mode_rows(f, a_rel, fr, mu_s, sigma, force_tol, acc_tol)
+    keep, friction, sigma = kern.mode_rows(f, a_rel, fr, mu_s, sigma, force_tol, acc_tol, a, b,
+                                           normal)
     kept = np.flatnonzero(keep)
     return (True, _take(c, kept), friction[kept], sigma[kept], normal[kept], r_a[kept],
             r_b[kept])

@@ -782,19 +782,38 @@ def force_problem(normal, r_a, r_b, body_a, body_b, omega, acc, v_n, v_t, slidin
 
 
 @jit
-def mode_rows(f, a_rel, fr, mu_s, sigma, force_tol, acc_tol):
+def mode_rows(f, a_rel, fr, mu_s, sigma, force_tol, acc_tol, body_a, body_b, normal):
     """The contact mode the force LCP solution implies: which contacts stay (they press, or
     they would accelerate into each other without a force), which stick and which slide
     (a sticking contact whose friction is at its bound while tangential acceleration remains
-    starts to slide that way)."""
+    starts to slide that way).
+
+    The contacts of one body pair along one line (``contact_groups``) share their friction:
+    only its sum is determined, and an LCP answer may squeeze them, the friction of one at
+    +mu f_N and of another at -mu f_N. Such a contact slides only if the group's friction
+    is at the group's bound too (each contact's friction counted along the first contact's
+    tangent)."""
     k = fr.shape[0]
     keep = np.empty(k, np.bool_)
     friction = np.empty(k, np.int64)
     new_sigma = sigma.copy()
+    group = contact_groups(body_a, body_b, normal)
+    total_t = np.zeros(k)
+    bound = np.zeros(k)
+    first = np.full(k, -1, np.int64)
+    for i in range(k):
+        g = group[i]
+        if first[g] < 0:
+            first[g] = i
+        same = body_a[i] == body_a[first[g]]
+        total_t[g] += f[k + i] if same else -f[k + i]
+        bound[g] += mu_s[i] * f[i]
     for i in range(k):
         f_n, f_t, a_n, a_t = f[i], f[k + i], a_rel[i], a_rel[k + i]
         keep[i] = f_n > force_tol or a_n <= acc_tol
-        at_bound = abs(f_t) >= mu_s[i] * f_n * (1 - 1e-9) - force_tol
+        g = group[i]
+        at_bound = (abs(f_t) >= mu_s[i] * f_n * (1 - 1e-9) - force_tol
+                    and abs(total_t[g]) >= bound[g] * (1 - 1e-9) - force_tol)
         if fr[i] == SLAVED_ROW:
             friction[i] = SLIDE
         elif fr[i] == BOX_ROW and at_bound and abs(a_t) > 1e-12:

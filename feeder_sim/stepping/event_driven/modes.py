@@ -26,6 +26,7 @@ from feeder_sim.contact.dynamics import (
     SLAVED,
     SolverStats,
 )
+from feeder_sim.contact.routh import routh_collision, STRONGE
 from feeder_sim.model.world import rot, State, World
 from feeder_sim.stepping.event_driven import _kernels as kern
 from feeder_sim.stepping.event_driven.bookkeeping import ContactMaterial, EventSettings, Setup
@@ -204,15 +205,28 @@ class ContactModes:
             ok, message, a_rel, f, fr = self.force_lcp(sub, state, acc, bodies, vn, vt,
                                                        sliding[idx], sig)
             if not ok:
-                # No consistent contact forces (Painlevé): impulse without collision.
+                # No consistent contact forces (Painlevé): impulse without collision, then
+                # the forces of the contacts that still rest.
                 self.stats.messages.append(
                     f'force LCP failed at t={state.t:.9f}s ({message}); impulse applied')
                 self.impact_without_collision(sub, state, bodies, pending)
                 vn, vt = relative_velocity(sub, state)
-                ok, message, a_rel, f, fr = self.force_lcp(
-                    sub, state, acc, bodies, vn, vt, np.zeros(len(idx), bool), sig)
+                still = np.abs(vn) <= setup.slip_tol * 10
+                if not still.all():
+                    keep[idx[~still]] = False
+                    idx, sub = idx[still], sub.subset(np.flatnonzero(still))
+                    vn, vt = vn[still], vt[still]
+                slips = np.abs(vt) > setup.slip_tol
+                sig = np.where(slips, np.sign(vt), sig[still])
+                ok, message, a_rel, f, fr = self.force_lcp(sub, state, acc, bodies, vn, vt,
+                                                           slips, sig)
+                if not ok:
+                    self.unresolved(state.t, message)
+            if not len(idx):
+                continue
             keep[idx], friction[idx], sigma[idx] = kern.mode_rows(
-                f, a_rel, fr, sub.mu_static, sig, setup.force_scale * 1e-12, 1e-9 * setup.g)
+                f, a_rel, fr, sub.mu_static, sig, setup.force_scale * 1e-12, 1e-9 * setup.g,
+                sub.contacts.body_a, sub.contacts.body_b, sub.contacts.normal)
         sel = np.flatnonzero(keep)
         active = cs if len(sel) == k else cs.subset(sel)
         return ModeChoice(active.contacts, friction[sel], sigma[sel], groups(active),
@@ -245,20 +259,56 @@ class ContactModes:
 
     def impact_without_collision(self, cs: ContactSet, state: State, bodies: np.ndarray,
                                  pending: list[StepContacts]) -> None:
-        """The impulse that stops the contacts' approach and slip where no contact forces are
-        consistent (Painlevé)."""
-        v_n, v_t = relative_velocity(cs, state)
+        """The impulse where no contact forces are consistent (Painlevé).
+
+        A contact sliding on a ray on which its normal velocity would fall
+        (``K_NN - mu_d sigma K_TN <= 0`` in its own collision matrix) takes Génot &
+        Brogliato's tangential impact (``routh.routh_collision`` from ``u_N = 0``, e = 0): it
+        presses in and stops slipping although it did not approach. The steepest such ray
+        goes first and the velocities are read again after each, as the impulse-based method
+        orders its collisions. Then Kawachi's impulse LCP stops whatever approach is left."""
+        k = cs.n
         J, minv, W = jacobian(self.world, cs, bodies)
-        friction, mu_lo, mu_hi = friction_rows(cs, v_t, np.zeros(cs.n, bool), True,
+        p = np.zeros(2 * k)
+        for _ in range(k):
+            v_n, v_t = relative_velocity(cs, state)
+            knn, ktt, ktn = np.diag(W)[:k], np.diag(W)[k:], np.diag(W[:k, k:])
+            fall = knn - cs.mu_dynamic * np.sign(v_t) * ktn
+            fall[(np.abs(v_t) <= self.setup.slip_tol) | (np.abs(v_n) > self.setup.slip_tol)] = 0
+            i = int(np.argmin(fall))
+            if not fall[i] < 0.0:
+                break
+            pt, pn, *_ = routh_collision(ktt[i], ktn[i], knn[i], v_t[i], 0.0,
+                                         cs.mu_dynamic[i], cs.mu_static[i], 0.0, STRONGE, 0.0)
+            dp = np.zeros(2 * k)
+            dp[i], dp[k + i] = pn, pt
+            self._apply(J, minv, dp, state, bodies)
+            p += dp
+            self.stats.tangential_impacts += 1
+        v_n, v_t = relative_velocity(cs, state)
+        friction, mu_lo, mu_hi = friction_rows(cs, v_t, np.zeros(k, bool), True,
                                                self.setup.slip_tol)
-        p, _, _ = self.solve_lcp('impact', W,
-                                 np.concatenate([np.minimum(v_n, 0.0), v_t]), friction, mu_lo,
-                                 mu_hi)
+        q, _, _ = self.solve_lcp('impact', W, np.concatenate([np.minimum(v_n, 0.0), v_t]),
+                                 friction, mu_lo, mu_hi)
+        self._apply(J, minv, q, state, bodies)
+        p += q
+        if p.any():
+            self.stats.impacts += 1
+            pending.append(StepContacts(cs, p[:k], p[k:]))
+
+    def unresolved(self, t: float, message: str) -> None:
+        """Count a force LCP that failed again after the impulse (reported by the run)."""
+        self.stats.unresolved_force_lcps += 1
+        if len(self.stats.messages) < 20:
+            self.stats.messages.append(
+                f'force LCP failed again after the impulse at t={t:.9f}s ({message})')
+
+    @staticmethod
+    def _apply(J: np.ndarray, minv: np.ndarray, p: np.ndarray, state: State,
+               bodies: np.ndarray) -> None:
         dv = (minv * (J.T @ p)).reshape(-1, 3)
         state.velocity[bodies] += dv[:, :2]
         state.omega[bodies] += dv[:, 2]
-        self.stats.impacts += 1
-        pending.append(StepContacts(cs, p[:cs.n], p[cs.n:]))
 
     def contact_set(self, state: State, contacts: Contacts) -> ContactSet:
         """:func:`contact_set`, with the body pairs' materials looked up."""

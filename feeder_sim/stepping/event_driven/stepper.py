@@ -57,9 +57,18 @@ problem of the same shape and keep it when the LCP residual accepts it: the even
 periodic motion pose nearly the same problems every cycle.
 
 Parallel contacts between the same two bodies (an edge lying on an edge) share their loads in
-a way rigid-body mechanics leaves open, so friction is tested on the group's totals. When the
-force LCP has no solution (Painlevé configurations) the contact takes an impulse without
-collision, as Baraff and the reference recommend.
+a way rigid-body mechanics leaves open, so friction is tested on the group's totals, both when
+a phase is held and when the force LCP's answer picks the next mode (an answer may squeeze the
+group, one contact's friction at +mu f_N and another's at -mu f_N: the group still sticks).
+When the force LCP has no solution (Painlevé configurations: a rod sliding on its tip with
+much friction, a box thrown along the floor with mu above its aspect ratio) a contact that
+slides on a ray along which its normal velocity falls takes Génot & Brogliato's tangential
+impact (``ContactModes.impact_without_collision``): it presses in and stops slipping
+although it did not approach. The contacts that separate after it leave the mode, and the
+force LCP is solved again. If it still has no answer, the fallback answer is used, counted
+(``unresolved_force_lcps``) and reported; so is any LCP the fallback ladder answered without
+friction (``frictionless_answers``): the run logs it once, the summary counts it and the node's
+``/diagnostics`` turns to ERROR.
 """
 
 from __future__ import annotations
