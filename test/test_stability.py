@@ -128,6 +128,15 @@ def test_restick_on_slope(method):
     assert m['creep_mps'] <= bound('restick_on_slope', 'creep_mps', method)
 
 
+@pytest.mark.parametrize('method', methods('thrown_box_mu_3', (IB,)))
+@pytest.mark.parametrize('mu', [3, 10])
+def test_thrown_box_with_high_friction_tumbles_to_rest(method, mu):
+    # friction is never lost: the common criterion inexact_answers is 0 in every passed cell
+    m = run(f'thrown_box_mu_{mu}', method)
+    assert m['inexact_answers'] == 0
+    assert m['final_speed_mps'] <= bound(f'thrown_box_mu_{mu}', 'final_speed_mps', method)
+
+
 @pytest.mark.parametrize('method', methods('mu_2_landing_stops', (IB,)))
 def test_mu_2_landing_stops_at_once(method):
     m = run('mu_2_landing_stops', method)

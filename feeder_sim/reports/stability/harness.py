@@ -80,7 +80,10 @@ class StabilityCase:
                   Criterion('max_penetration_m', self.penetration_m,
                             meaning='deepest contact penetration, m'),
                   Criterion('max_residual', self.residual,
-                            meaning='largest lcp.residual of any contact LCP solved')]
+                            meaning='largest lcp.residual of any contact LCP solved'),
+                  Criterion('inexact_answers', 0.0,
+                            meaning='contact LCPs whose fallback answer changed the physics '
+                                    '(friction lost, no force after the Painlevé impulse)')]
         if self.energy_tol is not None:
             common.append(Criterion('energy_gain', self.energy_tol,
                                     meaning='(max E(t) - E(0)) / E_ref'))
@@ -177,13 +180,14 @@ def _run_scene(run: SceneRun, overrides: Mapping[str, Any] | None, deadline: flo
 
 
 def _merge_stats(records: list[_Record]) -> dict[str, Any]:
-    out = {'fallbacks': 0, 'unconverged': 0, 'cascades': 0, 'energy_fixes': 0,
-           'max_residual': 0.0, 'max_penetration_m': 0.0, 'lcp_solves': 0, 'impacts': 0,
-           'events': 0, 'steps': 0, 'messages': []}
+    counts = ('fallbacks', 'unconverged', 'cascades', 'energy_fixes', 'lcp_solves', 'impacts',
+              'events', 'steps', 'tangential_impacts', 'frictionless_answers',
+              'unresolved_force_lcps')
+    out = {**dict.fromkeys(counts, 0), 'max_residual': 0.0, 'max_penetration_m': 0.0,
+           'messages': []}
     for r in records:
         st = r.sim.stats
-        for k in ('fallbacks', 'unconverged', 'cascades', 'energy_fixes', 'lcp_solves',
-                  'impacts', 'events', 'steps'):
+        for k in counts:
             out[k] += int(getattr(st, k))
         out['max_residual'] = max(out['max_residual'], float(st.max_residual))
         out['max_penetration_m'] = max(out['max_penetration_m'], float(st.max_penetration_m))
@@ -229,6 +233,9 @@ def run_case(case: StabilityCase, method: str, *, params: Mapping[str, Any] | No
     stats = _merge_stats(records) if records else {}
     measured['max_penetration_m'] = stats.get('max_penetration_m')
     measured['max_residual'] = stats.get('max_residual')
+    if stats:
+        measured['inexact_answers'] = float(stats['frictionless_answers']
+                                            + stats['unresolved_force_lcps'])
     cell.update(_judge(case, method, measured, cell['exception']))
     cell['wall_s'] = wall
     cell['stats'] = stats
