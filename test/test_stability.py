@@ -137,6 +137,12 @@ def test_thrown_box_with_high_friction_tumbles_to_rest(method, mu):
     assert m['final_speed_mps'] <= bound(f'thrown_box_mu_{mu}', 'final_speed_mps', method)
 
 
+@pytest.mark.parametrize('method', methods('tip_on_accelerating_platform', (IB,)))
+def test_tip_on_accelerating_platform(method):
+    m = run('tip_on_accelerating_platform', method)
+    assert m['tilt_end_rad'] >= 0.015
+
+
 @pytest.mark.parametrize('method', methods('mu_2_landing_stops', (IB,)))
 def test_mu_2_landing_stops_at_once(method):
     m = run('mu_2_landing_stops', method)

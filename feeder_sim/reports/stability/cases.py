@@ -360,6 +360,43 @@ for _mu in (3, 10):
         residual=_steps(1e-6, 1.0, 1e-6)))
 
 
+# A tall block (10 x 40 mm) sticking on a platform vibrating horizontally at 5 Hz, 0.5 g peak,
+# that starts with the platform's velocity: it must tip when the acceleration passes
+# g b / h = g / 4, at t* = asin(1/2) / omega
+_TIP_B, _TIP_H, _TIP_F = 0.005, 0.02, 5.0
+_TIP_A = 0.5 * G / (2 * math.pi * _TIP_F) ** 2
+_TIP_T = math.asin(G * _TIP_B / (_TIP_H * 0.5 * G)) / (2 * math.pi * _TIP_F)
+
+
+def _tip_bodies(_p) -> list[dict]:
+    w = 2 * math.pi * _TIP_F
+    return [{'name': 'platform', 'type': 'kinematic', 'polygon': box(0.2, 0.01),
+             'pose': [0.0, -0.01, 0.0], 'mu_static': 1.0, 'mu_dynamic': 1.0,
+             'restitution': 0.0, 'vibration': {'amplitude': _TIP_A, 'frequency': _TIP_F,
+                                               'angle': 0.0, 'phase': 0.0}},
+            box_part('block', _TIP_B, _TIP_H, (0.0, _TIP_H, 0.0), (_TIP_A * w, 0.0, 0.0),
+                     mu=1.0)]
+
+
+def _tip_measure(records: list[_Record], _p) -> dict[str, float]:
+    a = records[0].arrays()
+    angle = np.abs(a['angle'][:, 0])
+    before = a['t'] <= _TIP_T - 1e-3
+    return {'tilt_before_rad': float(angle[before].max()), 'tilt_end_rad': float(angle[-1])}
+
+
+_register(_case(
+    'tip_on_accelerating_platform',
+    'a 10 x 40 mm block sticking (mu = 1) on a platform vibrating horizontally, 0.5 g peak: '
+    f'flat until the acceleration passes g b / h at t* = {_TIP_T * 1e3:.2f} ms, then tips',
+    _tip_bodies, _tip_measure,
+    [Criterion('tilt_before_rad', _steps(1e-9, 1e-9, 1e-5),
+               meaning='largest tilt until 1 ms before t*, rad (impulse_based: '
+                       'micro-collisions rock it)'),
+     Criterion('tilt_end_rad', 0.015, op='>=', meaning='tilt 30 ms after t*, rad')],
+    steps=_STEPS_1MS, duration=_TIP_T + 0.03, chunks=200, energy_tol=None))
+
+
 # Restitution 1 and 0 ----------------------------------------------------------------------
 
 def _bouncer_bodies(e: float, mu: float) -> Callable[[Mapping[str, Any]], list[dict]]:
