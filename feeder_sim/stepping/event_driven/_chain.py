@@ -420,8 +420,10 @@ def _mode_at_event(t, c, pos, ang, vel, om, model, world, tols, acc, stats):
     v_n, v_t = kern.relative_velocity(normal, r_a, r_b, c.body_a, c.body_b, vel, om)
     fail = (False, c, np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 2)),
             np.zeros((0, 2)), np.zeros((0, 2)))
+    zeno = kern.zeno_speed(normal, c.body_a, c.body_b, dynamic, gravity, tols.touch_m)
     for i in range(k):
-        if v_n[i] < -slip_tol * 10:
+        # an approach, or the end of an accumulation of impacts (ContactModes.settle)
+        if v_n[i] < -slip_tol * 10 or slip_tol * 10 < v_n[i] < zeno[i]:
             return fail
     rest = np.flatnonzero(np.abs(v_n) <= slip_tol * 10)
     c = _take(c, rest)

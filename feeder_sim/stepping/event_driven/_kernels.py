@@ -782,6 +782,25 @@ def force_problem(normal, r_a, r_b, body_a, body_b, omega, acc, v_n, v_t, slidin
 
 
 @jit
+def zeno_speed(normal, body_a, body_b, dynamic, gravity, touch_m):
+    """Per contact, the normal speed (m/s) below which a part's corner leaving a support (a
+    static or driven body) is brought back by gravity before it rises past ``touch_m``:
+    ``sqrt(2 g_n touch_m)``, g_n the part of ``gravity`` (m/s^2) pressing along the contact
+    ``normal``; 0 on a wall or a ceiling, and between two parts, whose accumulations the
+    supports below them end."""
+    out = np.zeros(normal.shape[0])
+    for i in range(normal.shape[0]):
+        if dynamic[body_a[i]] and dynamic[body_b[i]]:
+            continue
+        g_n = -(normal[i, 0] * gravity[0] + normal[i, 1] * gravity[1])
+        if not dynamic[body_a[i]]:
+            g_n = -g_n          # the normal points from the part into the support
+        if g_n > 0.0:
+            out[i] = math.sqrt(2.0 * g_n * touch_m)
+    return out
+
+
+@jit
 def mode_rows(f, a_rel, fr, mu_s, sigma, force_tol, acc_tol, body_a, body_b, normal):
     """The contact mode the force LCP solution implies: which contacts stay (they press, or
     they would accelerate into each other without a force), which stick and which slide

@@ -69,6 +69,14 @@ force LCP is solved again. If it still has no answer, the fallback answer is use
 (``unresolved_force_lcps``) and reported; so is any LCP the fallback ladder answered without
 friction (``frictionless_answers``): the run logs it once, the summary counts it and the node's
 ``/diagnostics`` turns to ERROR.
+
+Rocking or bouncing to rest accumulates impacts (Zeno: a square with e = 0 keeps a quarter of
+its angular velocity at each impact, so the swings shrink geometrically and end after
+infinitely many impacts in a finite time). After an impact, a touching corner that leaves
+slower than gravity along its normal can lift it past ``touch_m`` ends the accumulation where
+it converges (``ContactModes.close_accumulation``): the touching contacts take the
+minimum-energy impulse that stops their normal motion, counted as ``zeno_closures``. A 20 mm
+square released 0.2 rad from flat settles after 6 impacts instead of stalling.
 """
 
 from __future__ import annotations
