@@ -69,7 +69,7 @@ class StabilityCase:
     wall_limit_s: float = 60.0
     penetration_m: float | Mapping[str, float] = 1e-4
     residual: float | Mapping[str, float] = 1e-6
-    energy_tol: float | None = 1e-6
+    energy_tol: float | Mapping[str, float] | None = 1e-6
     why: Mapping[str, str] = field(default_factory=dict)
     notes: Mapping[str, str] = field(default_factory=dict)
     params: Mapping[str, Any] = field(default_factory=dict)
