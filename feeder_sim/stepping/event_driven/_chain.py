@@ -422,8 +422,8 @@ def _mode_at_event(t, c, pos, ang, vel, om, model, world, tols, acc, stats):
             np.zeros((0, 2)), np.zeros((0, 2)))
     zeno = kern.zeno_speed(normal, c.body_a, c.body_b, dynamic, gravity, tols.touch_m)
     for i in range(k):
-        # an approach, or the end of an accumulation of impacts (ContactModes.settle)
-        if v_n[i] < -slip_tol * 10 or slip_tol * 10 < v_n[i] < zeno[i]:
+        # an approach, or a slow normal motion ContactModes.settle closes (Zeno)
+        if v_n[i] < -slip_tol * 10 or slip_tol * 1e-2 < abs(v_n[i]) < zeno[i]:
             return fail
     rest = np.flatnonzero(np.abs(v_n) <= slip_tol * 10)
     c = _take(c, rest)

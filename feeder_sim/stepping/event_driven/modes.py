@@ -144,7 +144,10 @@ class ContactModes:
                 break
             self.impact(cs, state, v_n, v_t, pending)
             v_n, v_t = relative_velocity(cs, state)
-        if ((v_n > slip_tol * 10) & (v_n < self.zeno_speed(cs))).any():
+        # a contact moving along its normal slower than 10 slip_tol counts as resting and is
+        # held at the acceleration level only, so that velocity too is closed, not kept
+        # (below 1e-2 slip_tol it is the round-off of locating the event)
+        if ((np.abs(v_n) > slip_tol * 1e-2) & (np.abs(v_n) < self.zeno_speed(cs))).any():
             self.close_accumulation(cs, state, pending)
             v_n, v_t = relative_velocity(cs, state)
         return self.choose(state, cs, v_n, v_t, pending)
@@ -163,7 +166,8 @@ class ContactModes:
         that shrink geometrically: infinitely many impacts in a finite time, after which it
         rests on the face. Near the end a touching corner leaves so slowly
         (``v_N < zeno_speed``) that gravity brings it back before it rises past the contact
-        band. Such a corner and every touching contact slower than that take the impulse
+        band; a corner that returns slower than the impact threshold would not be met by an
+        impact. Such a corner and every touching contact slower than that take the impulse
         that gives them all ``v_N = 0``: the state the accumulation converges to. It is the
         minimum-kinetic-energy impulse (M-orthogonal projection), so it never adds energy;
         it stands for gravity's impulse over the vanishing rest of the accumulation, at most
