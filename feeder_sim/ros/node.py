@@ -342,9 +342,9 @@ class SimNode(Node):
             message = 'finished'
         if self._record_status.startswith('failed'):
             level, message = DiagnosticStatus.ERROR, f'recording {self._record_status}'
-        elif stats.inexact():
+        elif inexact := stats.inexact():
             # a fallback changed the physics (friction lost): an error the user must see
-            level, message = DiagnosticStatus.ERROR, '; '.join(stats.inexact().values())
+            level, message = DiagnosticStatus.ERROR, '; '.join(inexact.values())
         elif stats.fallbacks or stats.unconverged:
             level, message = DiagnosticStatus.WARN, (
                 f'{stats.fallbacks} solver fallbacks, {stats.unconverged} unconverged solves')

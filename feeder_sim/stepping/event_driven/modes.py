@@ -147,8 +147,9 @@ class ContactModes:
         # a contact moving along its normal slower than 10 slip_tol counts as resting and is
         # held at the acceleration level only, so that velocity too is closed, not kept
         # (below 1e-2 slip_tol it is the round-off of locating the event)
-        if ((np.abs(v_n) > slip_tol * 1e-2) & (np.abs(v_n) < self.zeno_speed(cs))).any():
-            self.close_accumulation(cs, state, pending)
+        zeno = self.zeno_speed(cs)
+        if ((np.abs(v_n) > slip_tol * 1e-2) & (np.abs(v_n) < zeno)).any():
+            self.close_accumulation(cs, state, v_n, zeno, pending)
             v_n, v_t = relative_velocity(cs, state)
         return self.choose(state, cs, v_n, v_t, pending)
 
@@ -158,8 +159,8 @@ class ContactModes:
         return kern.zeno_speed(c.normal, c.body_a, c.body_b, self.world.dynamic,
                                self.world.gravity, self.settings.touch_m)
 
-    def close_accumulation(self, cs: ContactSet, state: State,
-                           pending: list[StepContacts]) -> None:
+    def close_accumulation(self, cs: ContactSet, state: State, v_n: np.ndarray,
+                           zeno: np.ndarray, pending: list[StepContacts]) -> None:
         """End an accumulation of impacts (Zeno) where it converges.
 
         A block rocking to rest with e < 1 hits one corner and then the other at intervals
@@ -171,9 +172,9 @@ class ContactModes:
         that gives them all ``v_N = 0``: the state the accumulation converges to. It is the
         minimum-kinetic-energy impulse (M-orthogonal projection), so it never adds energy;
         it stands for gravity's impulse over the vanishing rest of the accumulation, at most
-        the mass times ``zeno_speed``. Counted as ``zeno_closures``."""
-        v_n, _ = relative_velocity(cs, state)
-        near = np.flatnonzero((np.abs(v_n) < self.zeno_speed(cs))
+        the mass times ``zeno_speed``. Counted as ``zeno_closures``. ``v_n``: the contacts'
+        normal velocities (m/s), ``zeno``: their ``zeno_speed``."""
+        near = np.flatnonzero((np.abs(v_n) < zeno)
                               | (np.abs(v_n) <= self.setup.slip_tol * 10))
         sub = cs.subset(near)
         for bodies, idx in self.islands(sub):
@@ -309,10 +310,11 @@ class ContactModes:
         orders its collisions. Then Kawachi's impulse LCP stops whatever approach is left."""
         k = cs.n
         J, minv, W = jacobian(self.world, cs, bodies)
+        # each contact's own collision matrix in (t, n)
+        knn, ktt, ktn = np.diag(W)[:k], np.diag(W)[k:], np.diag(W[:k, k:])
         p = np.zeros(2 * k)
         for _ in range(k):
             v_n, v_t = relative_velocity(cs, state)
-            knn, ktt, ktn = np.diag(W)[:k], np.diag(W)[k:], np.diag(W[:k, k:])
             fall = knn - cs.mu_dynamic * np.sign(v_t) * ktn
             fall[(np.abs(v_t) <= self.setup.slip_tol) | (np.abs(v_n) > self.setup.slip_tol)] = 0
             i = int(np.argmin(fall))
