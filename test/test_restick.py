@@ -17,22 +17,24 @@ from feeder_sim.stepping.impulse_based import ImpulseSettings
 
 THETA, MU_S, MU_D = math.radians(30.0), 0.6, 0.4
 DECEL = G * (math.sin(THETA) + MU_D * math.cos(THETA))
-AXIS = np.array([math.cos(THETA), math.sin(THETA)])
 # impulse_based rests a part on micro-collisions that hop sqrt(2 g eps); between them nothing
 # holds it on the slope, so it creeps at about tan(theta) times that speed (module docstring)
 CREEP_IB = 2.0 * math.tan(THETA) * math.sqrt(2 * G * ImpulseSettings().envelope_m)
 
 
-def launched(method: str, v0: float, dt: float) -> Simulator:
+def launched(method: str, v0: float, dt: float, theta: float = THETA) -> Simulator:
+    """A box launched up a slope of ``theta`` (rad) at ``v0`` (m/s)."""
     mu = {'mu_static': MU_S, 'mu_dynamic': MU_D}
-    bodies = [{**ground(angle=THETA), **mu},
-              {**box_part('box', 0.01, 0.005, (*on_slope(0.0, 0.005, THETA), THETA),
-                          (v0 * AXIS[0], v0 * AXIS[1], 0.0)), **mu}]
+    c, s = math.cos(theta), math.sin(theta)
+    bodies = [{**ground(angle=theta), **mu},
+              {**box_part('box', 0.01, 0.005, (*on_slope(0.0, 0.005, theta), theta),
+                          (v0 * c, v0 * s, 0.0)), **mu}]
     return Simulator(build(scene_dict('restick', bodies, method, dt)))
 
 
-def along(sim: Simulator) -> float:
-    return float(sim.state.position[1] @ AXIS)
+def along(sim: Simulator, theta: float = THETA) -> float:
+    """The box's distance along the slope (m)."""
+    return float(sim.state.position[1] @ np.array([math.cos(theta), math.sin(theta)]))
 
 
 # (method, default step): the step the stability report uses; each also at 10x coarser
@@ -72,23 +74,18 @@ def test_where_static_friction_cannot_hold_the_block_slides_back(method):
     """Control: on a 35 deg slope (tan 35 deg = 0.70 > mu_s) the block stops, then slides back
     down at g (sin - mu_d cos), so the restick rule only holds where Coulomb allows it."""
     theta = math.radians(35.0)
-    axis = np.array([math.cos(theta), math.sin(theta)])
-    mu = {'mu_static': MU_S, 'mu_dynamic': MU_D}
     v0 = 0.5
-    bodies = [{**ground(angle=theta), **mu},
-              {**box_part('box', 0.01, 0.005, (*on_slope(0.0, 0.005, theta), theta),
-                          (v0 * axis[0], v0 * axis[1], 0.0)), **mu}]
-    sim = Simulator(build(scene_dict('slide_back', bodies, method, 1e-3)))
+    sim = launched(method, v0, 1e-3, theta)
     up = G * (math.sin(theta) + MU_D * math.cos(theta))
     down = G * (math.sin(theta) - MU_D * math.cos(theta))
     t_stop, s_stop = v0 / up, v0 ** 2 / (2 * up)
-    s0 = float(sim.state.position[1] @ axis)
+    s0 = along(sim, theta)
     after = 0.5
     sim.advance(t_stop + after)
-    s = float(sim.state.position[1] @ axis) - s0
+    s = along(sim, theta) - s0
     if method == 'time_stepping':
-        # the step in which the slip reverses has one friction impulse for both directions:
-        # a velocity error up to 2 mu_d g cos(theta) h, carried for the rest of the run
+        # the step in which the slip reverses is one-sided (no friction against the
+        # reversal): a velocity error up to 2 mu_d g cos(theta) h, kept for the rest of the run
         tol = 2 * MU_D * G * math.cos(theta) * 1e-3 * after
     else:
         # a micro-collision holds a slip below 2 mu_s (2 v_b) (see impulse_based's module

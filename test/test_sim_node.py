@@ -408,6 +408,17 @@ def test_diagnostics_report_pacing_and_solver_health(graph):
         assert key in values
     assert float(values['real_time_factor_achieved']) > 0.5    # as fast as possible
     assert int(values['solver_fallbacks']) == node.sim.stats.fallbacks
+    for key in ('frictionless_answers', 'unresolved_force_lcps'):
+        assert int(values[key]) == 0
+    # an answer without friction (counted as the fallback ladder counts it) turns the
+    # status to ERROR, with the count in the message
+    node.sim.stats.frictionless_answers = 3
+    seen = len(diagnostics)
+    graph.spin_until(lambda: len(diagnostics) > seen + 1)
+    status = diagnostics[-1].status[0]
+    assert status.level == DiagnosticStatus.ERROR
+    assert status.message.startswith('3 contact LCPs answered without friction')
+    assert {kv.key: kv.value for kv in status.values}['frictionless_answers'] == '3'
 
 
 FLOOD = '''
