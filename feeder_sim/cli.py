@@ -16,7 +16,7 @@ def _run(args: argparse.Namespace) -> int:
     from feeder_sim.simulator import Simulator
 
     sim = Simulator(args.scene, method=args.method, time_step=args.time_step,
-                    tolerance=args.tolerance)
+                    tolerance=args.tolerance, check_energy=args.check_energy)
     if args.record:
         Path(args.record).parent.mkdir(parents=True, exist_ok=True)
     result = run(sim, args.duration, publish_rate_hz=args.publish_rate, record=args.record)
@@ -130,6 +130,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--time-step', type=float, help="override the scene's solver.time_step")
     p.add_argument('--tolerance', type=float, help="override the scene's solver.tolerance")
     p.add_argument('--json', action='store_true', help='also print the summary as JSON')
+    p.add_argument('--check-energy', type=float, metavar='TOL',
+                   help='debug: stop with an error when the mechanical energy rises by more '
+                        'than TOL of the energy scale over a step or event without drive '
+                        'work (also $FEEDER_SIM_CHECK_ENERGY)')
     p.set_defaults(func=_run)
 
     p = sub.add_parser('replay', help='convert an MCAP log to a rerun recording (.rrd)')

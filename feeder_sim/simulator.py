@@ -23,6 +23,25 @@ from feeder_sim.stepping import StepContacts, STEPPERS
 
 log = logging.getLogger('feeder_sim')
 
+CHECK_ENERGY_VAR = 'FEEDER_SIM_CHECK_ENERGY'
+
+
+def _env_tolerance(text: str) -> float:
+    try:
+        tolerance = float(text)
+    except ValueError:
+        tolerance = math.nan
+    if not tolerance >= 0.0:
+        raise ValueError(f'{CHECK_ENERGY_VAR} must be a tolerance >= 0 (e.g. 1e-6), '
+                         f'got {text!r}')
+    return tolerance
+
+
+def _extent_m(body) -> float:
+    """Largest extent (m) of a body's outline."""
+    pts = np.concatenate(body.pieces)
+    return float(np.max(pts.max(0) - pts.min(0)))
+
 
 @dataclass
 class ContactReport:
@@ -118,14 +137,95 @@ class _ImpulseLog:
                              np.zeros(0, int), np.zeros(0, int))
 
 
+class EnergyInvariantError(AssertionError):
+    """Mechanical energy rose by more than the check allows where nothing could supply it."""
+
+
+class EnergyCheck:
+    """Asserts the invariant of passive contact: between impacts with e <= 1 and without drive
+    work, the parts' mechanical energy never rises.
+
+    Checked after every step of a time-stepped method and at every event of ``event_driven``
+    (and at the end of each call). The rise is measured from the energy at the last point
+    where the invariant could not be applied: a step or event interval in which a part touched
+    a moving driven body takes energy from the drive, so the reference is taken again after
+    it. ``tolerance`` is relative to the scene's energy scale (:meth:`Simulator.energy_scale_j`).
+    With ``raise_error`` a violation raises :class:`EnergyInvariantError`; otherwise the
+    largest rise is kept in ``largest_rise`` (and ``at_s``) for a report.
+    """
+
+    def __init__(self, sim: Simulator, tolerance: float, *, raise_error: bool = True) -> None:
+        if not tolerance >= 0.0:
+            raise ValueError(f'the energy check tolerance must be >= 0, got {tolerance!r}')
+        self.sim = sim
+        self.tolerance = float(tolerance)
+        self.raise_error = raise_error
+        self.scale_j = sim.energy_scale_j()
+        self.reference_j = sim.mechanical_energy()
+        self.largest_rise = 0.0          # of scale_j
+        self.at_s = sim.t
+        self.checks = 0
+        self.rebased = 0                 # intervals with drive work
+        self._seen = 0                   # reports of this advance already checked per event
+
+    def _drive_work(self, reports: list[StepContacts], t: float) -> bool:
+        w = self.sim.world
+        if not len(w.driven):
+            return False
+        seg = w.drive_segments(t)
+        moving = w.driven[(seg.amplitude_m * seg.omega_rad_s > 0.0) | (seg.offset_m != 0.0)]
+        if not len(moving):
+            return False
+        for r in reports:
+            c = r.cs.contacts
+            pushed = (r.normal_impulse != 0.0) | (r.tangent_impulse != 0.0)
+            if np.any(pushed & (np.isin(c.body_a, moving) | np.isin(c.body_b, moving))):
+                return True
+        return False
+
+    def check(self, state: State, reports: list[StepContacts]) -> None:
+        """The invariant after an interval whose contacts were ``reports``."""
+        self.checks += 1
+        energy = (self.sim.world.kinetic_energy(state)
+                  + self.sim.world.potential_energy(state))
+        if self._drive_work(reports, state.t):
+            self.rebased += 1
+            self.reference_j = energy
+            return
+        rise = (energy - self.reference_j) / self.scale_j
+        if rise > self.largest_rise:
+            self.largest_rise, self.at_s = rise, state.t
+        if rise > self.tolerance:
+            if self.raise_error:
+                raise EnergyInvariantError(
+                    f'{self.sim.scene.name} ({self.sim.method}): mechanical energy rose by '
+                    f'{rise:.3g} of the energy scale {self.scale_j:.3g} J at t = '
+                    f'{state.t:.9f} s (tolerance {self.tolerance:.3g}) without drive work')
+        # energy lost stays lost: a later rise is measured from the lowest level
+        self.reference_j = min(self.reference_j, energy)
+
+    def after_event(self, state: State, reports: list[StepContacts]) -> None:
+        self._seen += len(reports)
+        self.check(state, reports)
+
+    def after_advance(self, state: State, reports: list[StepContacts]) -> None:
+        self.check(state, reports[self._seen:])
+        self._seen = 0
+
+
 class Simulator:
     """A world, its state, the chosen stepping method and the bookkeeping around them."""
 
     def __init__(self, scene: Scene | str | os.PathLike, *, method: str | None = None,
                  time_step: float | None = None, tolerance: float | None = None,
-                 friction_impulse: bool | None = None, settings=None) -> None:
+                 friction_impulse: bool | None = None, settings=None,
+                 check_energy: float | None = None) -> None:
         """``settings``: the stepping method's own settings (``TimeStepSettings``,
-        ``EventSettings`` or ``ImpulseSettings``), for what the scene file does not set."""
+        ``EventSettings`` or ``ImpulseSettings``), for what the scene file does not set.
+
+        ``check_energy``: a tolerance (relative to :meth:`energy_scale_j`) for the energy
+        invariant checked after every step or event (:class:`EnergyCheck`); a debug mode,
+        also set by the environment variable ``FEEDER_SIM_CHECK_ENERGY``."""
         if not isinstance(scene, Scene):
             scene = load_scene(scene)
         changes = {k: v for k, v in (('method', method), ('time_step', time_step),
@@ -143,13 +243,19 @@ class Simulator:
         self.state = self.world.initial_state()
         self._log = _ImpulseLog()
         self._settings = settings
-        self._stepper = self._make_stepper()
         self.initial_energy_j = self.mechanical_energy()
+        if check_energy is None and os.environ.get(CHECK_ENERGY_VAR):
+            check_energy = _env_tolerance(os.environ[CHECK_ENERGY_VAR])
+        self.energy_check = None if check_energy is None else EnergyCheck(self, check_energy)
+        self._stepper = self._make_stepper()
 
     def _make_stepper(self):
         spec = self.scene.solver
         settings = None if self._settings is None else copy.deepcopy(self._settings)
-        return STEPPERS[spec.method](self.world, spec, self.stats, settings)
+        stepper = STEPPERS[spec.method](self.world, spec, self.stats, settings)
+        if self.energy_check is not None:
+            stepper.after_event = self.energy_check.after_event
+        return stepper
 
     @property
     def t(self) -> float:
@@ -164,13 +270,28 @@ class Simulator:
         """Integrate to simulated time ``t_end`` (s); no-op if already there."""
         if not math.isfinite(t_end):
             raise ValueError(f't_end must be finite, got {t_end!r}')
-        for report in self._stepper.advance(self.state, t_end):
-            self._log.add(report)
+        if self.energy_check is None:
+            for report in self._stepper.advance(self.state, t_end):
+                self._log.add(report)
+        else:
+            self._advance_checked(t_end)
         for kind, line in self.stats.inexact().items():
             if kind not in self._told:
                 # once per kind and run; the counts go on in the summary and /diagnostics
                 self._told.add(kind)
                 log.error('%s: by t = %.6f s, %s', self.scene.name, self.state.t, line)
+
+    def _advance_checked(self, t_end: float) -> None:
+        """``advance`` with the energy check after every step (every event: ``after_event``).
+
+        A time-stepped method is advanced one ``time_step`` per call, on the grid it steps on
+        anyway; only ``impulse_based``, whose own steps adapt, has them cut there too."""
+        h = math.inf if self.method == 'event_driven' else self.scene.solver.time_step
+        while t_end - self.state.t > 1e-9 * self.scene.solver.time_step:
+            reports = self._stepper.advance(self.state, min(t_end, self.state.t + h))
+            for report in reports:
+                self._log.add(report)
+            self.energy_check.after_advance(self.state, reports)
 
     def command_vibration(self, amplitude_m: float, frequency_hz: float) -> None:
         """New amplitude (m) and frequency (Hz) for every vibrating body, from now on.
@@ -193,6 +314,8 @@ class Simulator:
         self.state = self.world.initial_state()
         self._log = _ImpulseLog()
         self._stepper = self._make_stepper()
+        if self.energy_check is not None:
+            self.energy_check.reference_j = self.mechanical_energy()
 
     def take_contacts(self) -> ContactReport:
         """Contacts and impulses since the previous call."""
@@ -214,6 +337,16 @@ class Simulator:
         origin, axis = self.world.track_frame()
         idx = self.part_indices
         return (s.position[idx] - origin) @ axis, s.velocity[idx] @ axis
+
+    def energy_scale_j(self) -> float:
+        """A scale for the parts' energy, J: the sum over parts of m |g| d (d their largest
+        extent) plus the initial kinetic energy; what energy changes are measured against."""
+        w = self.world
+        g = float(np.linalg.norm(w.gravity))
+        size = np.array([_extent_m(self.scene.bodies[i]) for i in self.part_indices])
+        e = float(np.sum(w.mass[self.part_indices] * g * size)) + w.kinetic_energy(
+            self.world.initial_state())
+        return e if e > 0.0 else 1.0
 
     def mechanical_energy(self) -> float:
         """Kinetic plus gravitational potential energy of the parts, J."""

@@ -8,6 +8,7 @@ stale. The simulator sees nothing else of a method.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -48,6 +49,9 @@ class StepperBase:
     needs from them in ``prepare``."""
 
     settings_type: type
+    # Called with the state and the contacts reported since the previous call at every event a
+    # method locates (event_driven); the energy check of :mod:`feeder_sim.simulator` uses it.
+    after_event: Callable[[State, list[StepContacts]], None] | None = None
 
     def __init__(self, world: World, spec: SolverSpec, stats: SolverStats,
                  settings: object | None = None) -> None:

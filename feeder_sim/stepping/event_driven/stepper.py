@@ -133,9 +133,11 @@ class EventDriven(StepperBase):
         scratch = state.copy()
         events_here, last_event_t = 0, -math.inf
         give_way_s = GIVE_WAY_S
+        reported = len(self._pending)
         while state.t < t_end - 1e-15:
             if self._mode is None:
                 self._settle(state)
+                reported = self._checkpoint(state, reported)
             t_stop = t_end
             for i in self.world.driven:
                 t_stop = min(t_stop, self.world.drives[i].next_change_after(state.t))
@@ -148,6 +150,7 @@ class EventDriven(StepperBase):
             if hit:
                 self._mode = None
                 self.stats.events += 1
+                reported = self._checkpoint(state, reported)
                 dense = state.t - last_event_t < self.settings.cascade_window_s
                 events_here = events_here + 1 if dense else 0
                 last_event_t = state.t
@@ -165,11 +168,19 @@ class EventDriven(StepperBase):
         out, self._pending = self._pending, []
         return out
 
+    def _checkpoint(self, state: State, reported: int) -> int:
+        """At an event (before and after its impulses): hand ``after_event`` the contacts
+        reported since index ``reported`` of the pending list; returns the new index."""
+        if self.after_event is not None:
+            self.after_event(state, self._pending[reported:])
+        return len(self._pending)
+
     def _follow_phase(self, state: State, t_stop: float) -> bool:
         """Follow the held closed-form mode to t_stop or its first event; True at an event."""
         args = (self.world, self.setup, self._mode, state, t_stop, self.h_max(), self.watch,
                 self.drive_models, self._pending, self.stats)
-        if self.setup.chained:
+        if self.setup.chained and self.after_event is None:
+            # (the chain resolves events in compiled code; a check per event needs them here)
             hit, self._mode = phases.follow_chain(*args)
             return hit
         return phases.follow_closed_form(*args)
