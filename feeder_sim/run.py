@@ -18,7 +18,7 @@ import numpy as np
 
 from feeder_sim.output.frames import Frame, open_recorder, record_frame
 from feeder_sim.output.outcomes import OutcomeTracker, progress
-from feeder_sim.simulator import Simulator
+from feeder_sim.simulator import MAX_PUBLISH_RATE_HZ, Simulator
 
 log = logging.getLogger('feeder_sim')
 
@@ -54,10 +54,10 @@ def run(sim: Simulator, duration_s: float, *, publish_rate_hz: float = 100.0,
     when ``record`` names an MCAP file. A log line reports progress every
     ``progress_every_s`` of wall time.
     """
-    if not (duration_s > 0 and math.isfinite(duration_s)):
-        raise ValueError(f'duration must be a positive number of seconds, got {duration_s!r}')
-    if not (publish_rate_hz > 0 and math.isfinite(publish_rate_hz)):
-        raise ValueError(f'publish rate must be a positive number of Hz, got {publish_rate_hz!r}')
+    sim.check_duration(duration_s)
+    if not (0 < publish_rate_hz <= MAX_PUBLISH_RATE_HZ):
+        raise ValueError(f'publish rate must be a number of Hz in (0, {MAX_PUBLISH_RATE_HZ:g}], '
+                         f'got {publish_rate_hz!r}')
     recorder = open_recorder(sim, record) if record is not None else None
     names = sim.part_poses()[0]
     traj = Trajectory(names)
@@ -66,7 +66,8 @@ def run(sim: Simulator, duration_s: float, *, publish_rate_hz: float = 100.0,
     track_angle = w.base_angle[w.track_index] if w.track_index is not None else 0.0
     t0 = sim.t
     period = 1.0 / publish_rate_hz
-    n_frames = int(round(duration_s / period))
+    # the last frame may be shorter: the run ends at exactly duration_s
+    n_frames = max(1, math.ceil(duration_s / period - 1e-9))
     wall0 = time.perf_counter()
     last_report = wall0
     s, v = sim.track_coordinates()

@@ -17,13 +17,17 @@ import os
 import numpy as np
 
 from feeder_sim.contact.dynamics import SolverStats
-from feeder_sim.model.scene import load_scene, METHODS, Scene
+from feeder_sim.model.scene import load_scene, override_solver, Scene
 from feeder_sim.model.world import State, World
 from feeder_sim.stepping import StepContacts, STEPPERS
 
 log = logging.getLogger('feeder_sim')
 
 CHECK_ENERGY_VAR = 'FEEDER_SIM_CHECK_ENERGY'
+# A run of more steps than this loses the step in the round-off of the time itself (float64
+# resolves t to 1e-16 t): it would not end.
+MAX_STEPS_PER_RUN = 1e12
+MAX_PUBLISH_RATE_HZ = 1e5
 
 
 def _env_tolerance(text: str) -> float:
@@ -232,10 +236,8 @@ class Simulator:
                                      ('tolerance', tolerance),
                                      ('friction_impulse', friction_impulse)) if v is not None}
         if changes:
-            scene = replace(scene, solver=replace(scene.solver, **changes))
-        if scene.solver.method not in METHODS:
-            raise ValueError(f'solver.method must be one of {", ".join(METHODS)}, '
-                             f'got {scene.solver.method!r}')
+            scene = replace(scene, solver=override_solver(scene.solver, changes,
+                                                          f'{scene.name} (override)'))
         self.scene = scene
         self.world = World.from_scene(scene)
         self.stats = SolverStats()
@@ -280,6 +282,16 @@ class Simulator:
                 # once per kind and run; the counts go on in the summary and /diagnostics
                 self._told.add(kind)
                 log.error('%s: by t = %.6f s, %s', self.scene.name, self.state.t, line)
+
+    def check_duration(self, duration_s: float, what: str = 'duration') -> None:
+        """Refuse (ValueError naming ``what``) a run length that is not positive and finite or
+        takes more than :data:`MAX_STEPS_PER_RUN` steps of ``solver.time_step``."""
+        if not (duration_s > 0 and math.isfinite(duration_s)):
+            raise ValueError(f'{what} must be a positive number of seconds, got {duration_s!r}')
+        h = self.scene.solver.time_step
+        if duration_s / h > MAX_STEPS_PER_RUN:
+            raise ValueError(f'{what} {duration_s:g} s is more than {MAX_STEPS_PER_RUN:.0e} '
+                             f'steps of {h:g} s; give at most {MAX_STEPS_PER_RUN * h:g} s')
 
     def _advance_checked(self, t_end: float) -> None:
         """``advance`` with the energy check after every step (every event: ``after_event``).

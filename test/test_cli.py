@@ -82,6 +82,17 @@ bodies:
     (['accuracy', '--methods', 'box2d'], 'unknown method(s) box2d; choose from'),
     (['stability', '--cases', 'cradle'], 'choose from stack_mass_ratio_1e2'),
     (['stability', '--methods', 'verlet'], 'unknown method(s) verlet; choose from'),
+    # options are checked as the scene keys they override, and bounded so a run ends
+    (['run', 'track_one_box', '--duration', '1', '--time-step', '0'],
+     'solver.time_step: 0 is out of range'),
+    (['run', 'track_one_box', '--duration', '1', '--time-step=-1e-3'], 'solver.time_step'),
+    (['run', 'track_one_box', '--duration', '1', '--time-step', '1e-300'],
+     'in [1e-07, 0.1]'),
+    (['run', 'track_one_box', '--duration', '1', '--tolerance', '0'], 'solver.tolerance'),
+    (['run', 'track_one_box', '--duration', '1e300'], 'more than 1e+12 steps'),
+    (['run', 'track_one_box', '--duration', 'inf'], 'duration must be a positive number'),
+    (['run', 'track_one_box', '--duration', '1', '--publish-rate', '1e9'],
+     'publish rate must be a number of Hz in (0, 100000]'),
 ])
 def test_bad_input_is_one_clear_line(args, message):
     proc = subprocess.run([sys.executable, '-m', 'feeder_sim.cli', *args],
@@ -89,6 +100,18 @@ def test_bad_input_is_one_clear_line(args, message):
     assert proc.returncode == 2
     assert 'Traceback' not in proc.stderr
     assert message in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+
+
+@pytest.mark.parametrize('duration', [0.004, 0.0123, 0.01])
+def test_the_run_simulates_exactly_the_duration_asked(tmp_path, duration):
+    # frames every 10 ms: a duration that is not a whole number of frames ends on a shorter one
+    from feeder_sim.run import run
+    sim = Simulator('track_one_box')
+    result = run(sim, duration, publish_rate_hz=100.0)
+    assert sim.t == pytest.approx(duration, abs=1e-12)
+    assert result.trajectory.t[-1] == pytest.approx(duration, abs=1e-12)
+    assert result.summary['simulated_s'] == pytest.approx(sim.t, abs=1e-12)
 
 
 @pytest.mark.parametrize('method', ['event_driven', 'time_stepping'])

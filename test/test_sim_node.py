@@ -256,8 +256,10 @@ def test_bad_commands_are_rejected_counted_and_the_last_good_one_stays(graph):
     graph.spin_until(lambda: node.commands_accepted == 1)
     assert graph.call(Trigger, '/feeder_sim/step', Trigger.Request()).success
     assert (drive.amplitude_m, drive.frequency_hz) == (2e-4, 60.0)
+    # denormals and values below what the physics resolves too: a*omega underflows to 0
     bad = [[math.nan, 50.0], [1e-3, math.inf], [-1e-3, 50.0], [0.2, 50.0], [1e-3, 2000.0],
-           [1e-3], [1e-3, 50.0, 1.0]]
+           [1e-3], [1e-3, 50.0, 1.0], [1e-310, 1e-310], [5e-324, 50.0], [1e-3, 1e-320],
+           [1e-12, 50.0], [1e-3, 1e-6]]
     for data in bad:
         pub.publish(Float64MultiArray(data=data))
     graph.spin_until(lambda: node.commands_rejected == len(bad))

@@ -6,7 +6,14 @@ import numba
 import numpy as np
 import pytest
 
-from feeder_sim.model.vibration import Drive, drive_segments, segment_motion
+from feeder_sim.model.vibration import (
+    Drive,
+    drive_segments,
+    MIN_AMPLITUDE_M,
+    MIN_FREQUENCY_HZ,
+    parse_command,
+    segment_motion,
+)
 
 
 def test_motion_is_the_given_sinusoid():
@@ -53,7 +60,31 @@ def test_invalid_command_is_rejected_and_nothing_changes():
     for bad in [(math.nan, 50.0), (1e-3, math.inf), (-1e-3, 50.0), (1e-3, -1.0)]:
         with pytest.raises(ValueError, match='amplitude_m and frequency_hz'):
             d.command(0.01, *bad)
+    for bad in [(1e-310, 1e-310), (5e-324, 50.0), (1e-3, 1e-320), (1e-12, 50.0)]:
+        with pytest.raises(ValueError, match='below the smallest the physics resolves'):
+            d.command(0.01, *bad)
     assert d.motion(0.013)[0] == pytest.approx(1e-3 * math.sin(2 * math.pi * 50 * 0.013))
+
+
+@pytest.mark.parametrize('data, field', [
+    ([1e-310, 1e-310], 'amplitude'), ([5e-324, 50.0], 'amplitude'), ([1e-3, 1e-320], 'frequency'),
+    ([1e-12, 50.0], 'amplitude'), ([1e-3, 1e-6], 'frequency')])
+def test_a_command_too_small_to_resolve_is_refused_with_its_field(data, field):
+    with pytest.raises(ValueError, match=f'^{field} .* below the smallest .* give 0 to stop'):
+        parse_command(data)
+    # zero stops the drive, the smallest resolvable values run
+    assert parse_command([0.0, 0.0]) == (0.0, 0.0)
+    assert parse_command([MIN_AMPLITUDE_M, MIN_FREQUENCY_HZ]) == (1e-9, 1e-3)
+
+
+@pytest.mark.parametrize('method', ['event_driven', 'time_stepping', 'impulse_based'])
+def test_the_smallest_drive_runs_finite(method):
+    from feeder_sim.simulator import Simulator
+    sim = Simulator('track_one_box', method=method)
+    sim.advance(0.02)
+    sim.command_vibration(MIN_AMPLITUDE_M, MIN_FREQUENCY_HZ)
+    sim.advance(0.1)
+    assert np.all(np.isfinite(sim.state.position)) and np.all(np.isfinite(sim.state.velocity))
 
 
 def test_reset_restores_the_initial_motion():

@@ -15,7 +15,7 @@ comments) count as absent. ``track: null`` means "no track body".
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 import difflib
 import math
 from numbers import Real
@@ -29,6 +29,7 @@ import numpy as np
 import yaml
 
 from feeder_sim.model import geometry
+from feeder_sim.model.vibration import drive_value_problem
 
 __all__ = [
     'BODY_TYPES', 'METHODS', 'BodySpec', 'Scene', 'SceneError', 'SolverSpec', 'Vibration',
@@ -40,6 +41,13 @@ BODY_TYPES = ('static', 'kinematic', 'dynamic')
 RESTITUTION_LAWS = ('stronge', 'poisson', 'newton')
 DEFAULT_GRAVITY = (0.0, -9.81)
 MAX_FRICTION = 10.0
+# Bounds that keep a run finite and its numbers meaningful; far beyond any feeder.
+MAX_LENGTH_M = 1e4           # |coordinate| of a pose or a vertex
+MAX_ANGLE_RAD = 1e3          # |pose angle|: beyond it sin/cos lose the part's orientation
+MAX_SPEED_MPS = 1e3          # |initial velocity component|
+MAX_SPIN_RAD_S = 1e5         # |initial angular velocity|
+MAX_GRAVITY_MPS2 = 1e4       # |gravity component|, about 1000 g
+MIN_TIME_STEP_S = 1e-7       # below it a simulated second costs over 1e7 steps
 
 
 class SceneError(ValueError):
@@ -300,14 +308,19 @@ def _yaml11_number(text: str) -> str:
     return f'{mantissa}e{exponent}' if exponent else mantissa
 
 
-def _vec(value, path: str, n: int, what: str = '') -> np.ndarray:
-    """A list of exactly n finite numbers."""
+def _vec(value, path: str, n: int, what: str = '',
+         limits: tuple[float, ...] | None = None) -> np.ndarray:
+    """A list of exactly n finite numbers, each within +-limits[k] if given."""
     shape = f'{n} numbers' + (f' {what}' if what else '')
     if not _is_list(value):
         raise _Invalid(path, f'expected a list of {shape}, got {_describe(value)}')
     if len(value) != n:
         raise _Invalid(path, f'expected {shape}, got {_describe(value)}')
-    return np.array([_number(x, f'{path}[{k}]') for k, x in enumerate(value)])
+    if limits is None:
+        return np.array([_number(x, f'{path}[{k}]') for k, x in enumerate(value)])
+    return np.array([_number(x, f'{path}[{k}]', -lim, lim,
+                             hint='larger values do not keep a run finite and meaningful')
+                     for k, (x, lim) in enumerate(zip(value, limits, strict=True))])
 
 
 def _string(value, path: str) -> str:
@@ -410,7 +423,8 @@ def _vertices(value, path: str) -> np.ndarray:
         raise _Invalid(path, f'expected a list of [x, y] vertices (m), got {_describe(value)}')
     if len(value) < 3:
         raise _Invalid(path, f'a polygon needs at least 3 [x, y] vertices, got {len(value)}')
-    return np.array([_vec(p, f'{path}[{k}]', 2, '[x, y] (m)') for k, p in enumerate(value)])
+    return np.array([_vec(p, f'{path}[{k}]', 2, '[x, y] (m)', (MAX_LENGTH_M,) * 2)
+                     for k, p in enumerate(value)])
 
 
 def _orientation(v: np.ndarray, path: str, noun: str) -> None:
@@ -457,11 +471,22 @@ def _pieces(value, path: str) -> tuple[np.ndarray, ...]:
 # --------------------------------------------------------------------------------------------
 # Blocks
 
+def _drive_value(name: str, check: Callable[[Any, str], float]) -> Callable[[Any, str], float]:
+    def checked(value, path: str) -> float:
+        x = check(value, path)
+        if (problem := drive_value_problem(name, x)) is not None:
+            raise _Invalid(path, problem)
+        return x
+    return checked
+
+
 _VIBRATION = {
-    'amplitude': _Field(_num(0.0, 0.1, unit='m, 0-peak',
-                             hint='feeder amplitudes are typically 1e-5 to 1e-3 m'),
+    'amplitude': _Field(_drive_value('amplitude', _num(
+                            0.0, 0.1, unit='m, 0-peak',
+                            hint='feeder amplitudes are typically 1e-5 to 1e-3 m')),
                         'the displacement amplitude in m (0-peak)'),
-    'frequency': _Field(_num(0.0, 1000.0, unit='Hz'), 'the frequency in Hz'),
+    'frequency': _Field(_drive_value('frequency', _num(0.0, 1000.0, unit='Hz')),
+                        'the frequency in Hz'),
     'angle': _Field(_num(unit='rad'), 'the direction in rad from the body x axis'),
     'phase': _Field(_num(unit='rad'), 'the phase in rad', 0.0),
 }
@@ -476,8 +501,10 @@ def _vibration(value, path: str) -> Vibration | None:
 _SOLVER = {
     'method': _Field(lambda v, p: _choice(v, p, METHODS), 'one of ' + ', '.join(METHODS),
                      SolverSpec.method),
-    'time_step': _Field(_num(0.0, 0.1, lo_open=True, unit='s'), 'the time step in s',
-                        SolverSpec.time_step),
+    'time_step': _Field(_num(MIN_TIME_STEP_S, 0.1, unit='s',
+                             hint=f'steps below {MIN_TIME_STEP_S:g} s cost over 1e7 per '
+                                  'simulated second'),
+                        'the time step in s', SolverSpec.time_step),
     'friction_impulse': _Field(_boolean, 'true or false', SolverSpec.friction_impulse),
     'tolerance': _Field(_num(0.0, 1e-2, lo_open=True), 'a relative tolerance',
                         SolverSpec.tolerance),
@@ -496,9 +523,11 @@ _BODY = {
     'type': _Field(lambda v, p: _choice(v, p, BODY_TYPES), 'one of ' + ', '.join(BODY_TYPES)),
     'polygon': _Field(_polygon, 'a list of [x, y] vertices (m)', None),
     'polygons': _Field(_pieces, 'a list of convex pieces', None),
-    'pose': _Field(lambda v, p: _vec(v, p, 3, '[x, y, theta] (m, m, rad)'),
+    'pose': _Field(lambda v, p: _vec(v, p, 3, '[x, y, theta] (m, m, rad)',
+                                     (MAX_LENGTH_M, MAX_LENGTH_M, MAX_ANGLE_RAD)),
                    '[x, y, theta] (m, m, rad)'),
-    'velocity': _Field(lambda v, p: _vec(v, p, 3, '[vx, vy, omega] (m/s, m/s, rad/s)'),
+    'velocity': _Field(lambda v, p: _vec(v, p, 3, '[vx, vy, omega] (m/s, m/s, rad/s)',
+                                         (MAX_SPEED_MPS, MAX_SPEED_MPS, MAX_SPIN_RAD_S)),
                        '[vx, vy, omega] (m/s, m/s, rad/s)', np.zeros(3)),
     'mass': _Field(_num(0.0, lo_open=True, unit='kg'), 'the mass in kg', None),
     'density': _Field(_num(0.0, lo_open=True, unit='kg/m^2'), 'the areal density in kg/m^2',
@@ -589,7 +618,8 @@ def _track_name(value, path: str) -> str | None:
 
 _TOP = {
     'name': _Field(_string, 'a text', _AUTO),
-    'gravity': _Field(lambda v, p: _vec(v, p, 2, '[gx, gy] (m/s^2)'), '[gx, gy] (m/s^2)',
+    'gravity': _Field(lambda v, p: _vec(v, p, 2, '[gx, gy] (m/s^2)', (MAX_GRAVITY_MPS2,) * 2),
+                      '[gx, gy] (m/s^2)',
                       np.array(DEFAULT_GRAVITY)),
     'track': _Field(_track_name, 'the name of a body', _AUTO, nullable=True),
     'solver': _Field(_solver, 'a mapping of solver settings', SolverSpec(), nullable=True),
@@ -651,6 +681,22 @@ def _default_track(bodies: tuple[BodySpec, ...]) -> str | None:
 
 def _default_name(source: str) -> str:
     return 'unnamed' if source.startswith('<') else Path(source).stem
+
+
+def override_solver(solver: SolverSpec, changes: Mapping[str, Any],
+                    source: str = '<override>') -> SolverSpec:
+    """``solver`` with ``changes`` (solver keys) checked as a scene file's would be; raises
+    SceneError naming ``solver.<key>``. What the CLI and the node's parameters go through."""
+    out = {}
+    try:
+        for key, value in changes.items():
+            if key not in _SOLVER:
+                raise _Invalid(_join('solver', key), f'unknown key {key!r}; allowed keys: '
+                                                     + ', '.join(_SOLVER))
+            out[key] = _SOLVER[key].check(value, _join('solver', key))
+    except _Invalid as err:
+        raise SceneError(err.message, err.path, source) from None
+    return replace(solver, **out)
 
 
 def parse_scene(data: Mapping, source: str = '<dict>') -> Scene:

@@ -22,6 +22,25 @@ from feeder_sim._jit import inner
 
 TWO_PI = 2.0 * math.pi
 
+# The smallest non-zero drive values the physics resolves. An amplitude below the contact
+# tolerances (1 nm) moves nothing a contact can see, and its product with omega underflows
+# for the denormal values a wrong unit or a corrupted message produces; a frequency below
+# 1 mHz (a period over 1000 s) is a slow displacement, not a vibration.
+MIN_AMPLITUDE_M = 1e-9
+MIN_FREQUENCY_HZ = 1e-3
+
+
+def drive_value_problem(name: str, value: float) -> str | None:
+    """Why a drive ``amplitude`` (m) or ``frequency`` (Hz) cannot be used, or None.
+
+    Zero is allowed (the drive is off); so is anything from the minimum up."""
+    minimum, unit = {'amplitude': (MIN_AMPLITUDE_M, 'm'),
+                     'frequency': (MIN_FREQUENCY_HZ, 'Hz')}[name]
+    if 0.0 < value < minimum:
+        return (f'{name} {value:g} {unit} is below the smallest the physics resolves '
+                f'({minimum:g} {unit}); give 0 to stop the drive, or at least {minimum:g} {unit}')
+    return None
+
 
 @dataclass
 class _Segment:
@@ -86,6 +105,9 @@ class Drive:
                 math.isfinite(amplitude_m) and math.isfinite(frequency_hz)):
             raise ValueError('amplitude_m and frequency_hz must be finite and >= 0, got '
                              f'{amplitude_m!r}, {frequency_hz!r}')
+        for name, value in (('amplitude', amplitude_m), ('frequency', frequency_hz)):
+            if (problem := drive_value_problem(name, value)) is not None:
+                raise ValueError(problem)
         d, v, _ = self.motion(t)
         old = self.segment(t)
         old_phase = old.phase_rad + TWO_PI * old.frequency_hz * (t - old.start_s)
@@ -206,4 +228,6 @@ def parse_command(data, limits: CommandLimits = CommandLimits()) -> tuple[float,
             raise ValueError(f'{name} {value:g} {unit} is negative; it must be >= 0')
         if value > bound:
             raise ValueError(f'{name} {value:g} {unit} exceeds the limit {bound:g} {unit}')
+        if (problem := drive_value_problem(name, value)) is not None:
+            raise ValueError(problem)
     return amplitude_m, frequency_hz
