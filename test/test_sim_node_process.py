@@ -217,3 +217,39 @@ def test_a_signal_during_start_up_still_exits_0(workspace, tmp_path, processes):
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err
     assert 'Traceback' not in err
+
+
+def run_node(workspace, *argv: str, timeout: float = 120) -> subprocess.CompletedProcess:
+    exe = ros2_run_path(workspace['env'], 'feeder_sim', 'sim_node')
+    return subprocess.run([str(exe), *argv], env=workspace['env'], capture_output=True,
+                          text=True, timeout=timeout)
+
+
+def test_whole_numbers_are_accepted_for_double_parameters(workspace):
+    # the README's own `make run DURATION=20 RTF=0` passes integers
+    proc = run_node(workspace, '--ros-args', '-p', 'duration:=1', '-p', 'real_time_factor:=0',
+                    '-p', 'publish_rate:=50')
+    assert proc.returncode == 0, proc.stderr
+    assert 'duration reached: t = 1 s' in proc.stderr + proc.stdout
+
+
+def test_help_prints_usage_and_starts_nothing(workspace):
+    proc = run_node(workspace, '--help', timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith('usage: ros2 run feeder_sim sim_node')
+    assert 'real_time_factor' in proc.stdout and 'steps_per_call' in proc.stdout
+    assert 'scene ' not in proc.stderr              # no simulation started
+
+
+@pytest.mark.parametrize('argv, message', [
+    (['--ros-args', '-p'], 'bad --ros-args'),
+    (['--ros-args', '--no-such-flag'], 'bad --ros-args'),
+    (['--ros-args', '-p', 'time_step:=1e-300'], 'solver.time_step: 1e-300 is out of range'),
+    (['--ros-args', '-p', 'duration:=1e300'], 'Parameter duration out of range'),
+], ids=['trailing -p', 'unknown flag', 'time step 1e-300', 'endless duration'])
+def test_bad_arguments_are_one_line_and_exit_2(workspace, argv, message):
+    proc = run_node(workspace, *argv, timeout=60)
+    assert proc.returncode == 2, proc.stderr
+    ours = [line for line in proc.stderr.splitlines() if line.startswith('sim_node:')]
+    assert len(ours) == 1 and message in ours[0], proc.stderr
+    assert 'Traceback' not in proc.stderr

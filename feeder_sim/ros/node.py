@@ -128,6 +128,26 @@ def _descriptor(p: _Param) -> ParameterDescriptor:
     return d
 
 
+_DOUBLES = {p.name for p in PARAMETERS if isinstance(p.default, float)}
+
+
+def _as_declared(param: Parameter) -> Parameter:
+    """An integer given for a double parameter, as that double."""
+    if param.name in _DOUBLES and param.type_ == Parameter.Type.INTEGER:
+        return Parameter(param.name, Parameter.Type.DOUBLE, float(param.value))
+    return param
+
+
+def usage() -> str:
+    """``sim_node --help``: how to run it and every parameter with its default."""
+    lines = ['usage: ros2 run feeder_sim sim_node [--help] [--ros-args -p NAME:=VALUE ...]', '',
+             'Simulates a feeder scene and publishes it over ROS 2 (see the README for the',
+             'topics and services). Parameters (default):']
+    for p in PARAMETERS:
+        lines.append(f'  {p.name} ({p.default!r}): {p.description}')
+    return '\n'.join(lines)
+
+
 class SimNode(Node):
     """The ``feeder_sim`` node. Construct after ``rclpy.init``; ``close()`` finalizes the log.
 
@@ -137,6 +157,11 @@ class SimNode(Node):
 
     def __init__(self, **node_options) -> None:
         super().__init__(NODE_NAME, **node_options)
+        # `-p duration:=20` arrives as an INTEGER: a whole number is a fine double
+        for name, given in list(self._parameter_overrides.items()):
+            self._parameter_overrides[name] = _as_declared(given)
+        self.add_pre_set_parameters_callback(
+            lambda params: [_as_declared(p) for p in params])
         for p in PARAMETERS:
             self.declare_parameter(p.name, p.default, _descriptor(p))
         value = {p.name: self.get_parameter(p.name).value for p in PARAMETERS}
@@ -150,6 +175,8 @@ class SimNode(Node):
                              time_step=value['time_step'] or None)
         self.frame_id: str = value['frame_id']
         self.period_ns = max(1, round(_NS / value['publish_rate']))
+        if value['duration'] > 0:
+            self.sim.check_duration(value['duration'], 'parameter duration')
         self.duration_ns = round(value['duration'] * _NS)
         self.paused: bool = value['start_paused']
         self.done = False
@@ -486,7 +513,18 @@ def main(args: list[str] | None = None, stop: threading.Event | None = None) -> 
         stop = threading.Event()
         previous = {sig: signal.signal(sig, lambda signum, frame: stop.set())
                     for sig in (signal.SIGINT, signal.SIGTERM)}
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    argv = sys.argv[1:] if args is None else args[1:]
+    own = argv[:argv.index('--ros-args')] if '--ros-args' in argv else argv
+    if '-h' in own or '--help' in own:
+        print(usage())
+        return 0
+    try:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except Exception as err:   # rcl's argument errors come as several types
+        print(f'sim_node: error: bad --ros-args ({str(err).splitlines()[0]}); write them as '
+              '--ros-args -p NAME:=VALUE', file=sys.stderr)
+        _restore(previous)
+        return 2
     try:
         node = SimNode()
     except (ParameterException, SceneError, ValueError, OSError, NotImplementedError) as err:
