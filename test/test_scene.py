@@ -612,3 +612,29 @@ def test_every_shipped_scene_loads():
         scene = load_scene(name)
         assert isinstance(scene, Scene)
         assert all(isinstance(b, BodySpec) for b in scene.bodies)
+
+
+# --- loader limits: refused at once, by size, depth and vertex count ---------------------
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize('text, fragment', [
+    ('bodies: ' + '[' * 5000 + ']' * 5000 + '\n', 'nested deeper than 32 levels'),
+    ('bodies: ' + '{a: ' * 200 + '1' + '}' * 200 + '\n', 'nested deeper than 32 levels'),
+    ('# padding\n' * (300_000), 'scene files are limited to 2 MiB'),
+], ids=['deep lists', 'deep mappings', 'too large'])
+def test_files_beyond_the_loader_limits_are_refused(tmp_path, text, fragment):
+    with pytest.raises(SceneError, match=fragment):
+        load_scene(write(tmp_path, text))
+
+
+@pytest.mark.timeout(60)
+def test_an_outline_with_too_many_vertices_is_refused_before_any_work():
+    th = np.linspace(0.0, 2 * np.pi, 30_000, endpoint=False)
+    data = yaml.safe_load(MINIMAL)
+    data['bodies'][-1]['polygon'] = np.c_[np.cos(th), np.sin(th)].tolist()
+    with pytest.raises(SceneError, match=r'30000 vertices; an outline may have at most 1000'):
+        parse_scene(data)
+    # the largest allowed outline is checked in about a second (O(n^2) memory: ~100 MB)
+    data['bodies'][-1]['polygon'] = (0.01 * np.c_[np.cos(th[::30]), np.sin(th[::30])]).tolist()
+    assert len(parse_scene(data).bodies[-1].outlines[0]) == 1000

@@ -48,6 +48,12 @@ MAX_SPEED_MPS = 1e3          # |initial velocity component|
 MAX_SPIN_RAD_S = 1e5         # |initial angular velocity|
 MAX_GRAVITY_MPS2 = 1e4       # |gravity component|, about 1000 g
 MIN_TIME_STEP_S = 1e-7       # below it a simulated second costs over 1e7 steps
+# What the loader reads: checking a polygon costs O(n^2) time and memory (100 MB, 1 s at 1000
+# vertices); a scene file of thousands of parts is well under a megabyte.
+MAX_POLYGON_VERTICES = 1000
+MAX_PIECES = 200
+MAX_FILE_BYTES = 2 * 2 ** 20
+MAX_NESTING = 32
 
 
 class SceneError(ValueError):
@@ -423,6 +429,10 @@ def _vertices(value, path: str) -> np.ndarray:
         raise _Invalid(path, f'expected a list of [x, y] vertices (m), got {_describe(value)}')
     if len(value) < 3:
         raise _Invalid(path, f'a polygon needs at least 3 [x, y] vertices, got {len(value)}')
+    if len(value) > MAX_POLYGON_VERTICES:
+        raise _Invalid(path, f'{len(value)} vertices; an outline may have at most '
+                             f'{MAX_POLYGON_VERTICES}: simplify it (drop vertices closer than '
+                             'the contact detail you need, e.g. 10 um)')
     return np.array([_vec(p, f'{path}[{k}]', 2, '[x, y] (m)', (MAX_LENGTH_M,) * 2)
                      for k, p in enumerate(value)])
 
@@ -447,6 +457,9 @@ def _pieces(value, path: str) -> tuple[np.ndarray, ...]:
     if not _is_list(value) or len(value) == 0:
         raise _Invalid(path, 'expected a non-empty list of convex pieces, each a list of [x, y] '
                              f'vertices (m), got {_describe(value)}')
+    if len(value) > MAX_PIECES:
+        raise _Invalid(path, f'{len(value)} pieces; a body may have at most {MAX_PIECES}: merge '
+                             'them into fewer convex pieces')
     pieces = []
     for k, item in enumerate(value):
         sub = f'{path}[{k}]'
@@ -819,11 +832,29 @@ def _find(path_or_name: str | os.PathLike) -> Path:
                      'set FEEDER_SIM_CONFIG to add a scene directory', source=given)
 
 
+def _check_nesting(data: Any, source: str) -> None:
+    """Refuse data nested deeper than MAX_NESTING (iteratively: no recursion to exhaust)."""
+    stack = [(data, 1)]
+    while stack:
+        item, depth = stack.pop()
+        if isinstance(item, (dict, list)):
+            if depth > MAX_NESTING:
+                raise SceneError(f'nested deeper than {MAX_NESTING} levels; a scene file needs '
+                                 'about 6', source=source)
+            children = item.values() if isinstance(item, dict) else item
+            stack.extend((child, depth + 1) for child in children)
+
+
 def load_scene(path_or_name: str | os.PathLike) -> Scene:
     """Load and validate a scene file, given its path or the name of a shipped scene."""
     path = _find(path_or_name)
     source = str(path)
     try:
+        size = path.stat().st_size
+        if size > MAX_FILE_BYTES:
+            raise SceneError(f'the file is {size / 2 ** 20:.1f} MiB; scene files are limited to '
+                             f'{MAX_FILE_BYTES / 2 ** 20:.0f} MiB (a scene of thousands of parts '
+                             'is well under one)', source=source)
         text = path.read_text(encoding='utf-8')
     except UnicodeDecodeError as err:
         raise SceneError(f'not UTF-8 text ({err.reason} at byte {err.start}); save the file as '
@@ -832,6 +863,10 @@ def load_scene(path_or_name: str | os.PathLike) -> Scene:
         raise SceneError(f'cannot read the file: {err.strerror}', source=source) from None
     try:
         data = yaml.load(text, Loader=_SceneLoader)
+        _check_nesting(data, source)
+    except RecursionError:
+        raise SceneError(f'nested deeper than {MAX_NESTING} levels; a scene file needs about 6',
+                         source=source) from None
     except yaml.MarkedYAMLError as err:
         mark = err.problem_mark or err.context_mark
         line, column = (mark.line + 1, mark.column + 1) if mark else (None, None)
