@@ -253,3 +253,33 @@ def test_bad_arguments_are_one_line_and_exit_2(workspace, argv, message):
     ours = [line for line in proc.stderr.splitlines() if line.startswith('sim_node:')]
     assert len(ours) == 1 and message in ours[0], proc.stderr
     assert 'Traceback' not in proc.stderr
+
+
+@pytest.mark.parametrize('sig', [signal.SIGTERM, signal.SIGINT], ids=['SIGTERM', 'SIGINT'])
+def test_a_signal_ends_long_physics_within_a_second(workspace, tmp_path, sig, processes):
+    # 1e-7 s steps and one frame per simulated second: a frame is 1e7 steps of time
+    # stepping, minutes of wall time; it runs in slices that look at the stop request
+    log = tmp_path / 'slow.mcap'
+    proc = start_node(workspace, processes, '-p', f'record_path:={log}',
+                      '-p', 'real_time_factor:=0.0', '-p', 'method:=time_stepping',
+                      '-p', 'time_step:=1e-7', '-p', 'publish_rate:=1.0',
+                      '-p', 'record_flush_period:=0.1')
+    wait_for_messages(log, proc, min_bytes=1)
+    time.sleep(4.0)                       # start-up done, deep inside a frame
+    assert proc.poll() is None
+    sent = time.monotonic()
+    proc.send_signal(sig)
+    out, err = proc.communicate(timeout=30)
+    elapsed = time.monotonic() - sent
+    assert proc.returncode == 0, err
+    assert elapsed < 1.5, f'{elapsed:.2f} s to stop'
+    assert 'Traceback' not in err
+    with open(log, 'rb') as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None                   # finalized: summary section written
+    # every frame logged is whole (clock, poses, contacts, track state alike)
+    by_topic: dict[str, list] = {}
+    for m in read_ros2_messages(log):
+        by_topic.setdefault(m.channel.topic, []).append(m)
+    frames = len(by_topic['/clock'])
+    assert len(by_topic['/feeder_sim/part_poses']) == frames

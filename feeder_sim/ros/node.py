@@ -71,6 +71,8 @@ _NS = 1_000_000_000
 _WALL_BUDGET_S = 0.01
 _WALL_BUDGET_FREE_S = 0.025
 _MAX_LAG_S = 0.25          # wall time behind schedule after which pacing forgets the debt
+_SLICE_WALL_S = 0.1        # a frame that would take longer runs in slices of about this
+_SLICE_FIRST_STEPS = 20_000  # steps of a time-stepped method tried before any cost is known
 
 
 @dataclass(frozen=True)
@@ -180,6 +182,9 @@ class SimNode(Node):
         self.duration_ns = round(value['duration'] * _NS)
         self.paused: bool = value['start_paused']
         self.done = False
+        # set by main() from SIGINT/SIGTERM: long physics is cut into slices that look at it
+        self.stop = threading.Event()
+        self._wall_per_sim_s: float | None = None    # measured cost of simulated time
         self.exit_code = 0
         self.frames = 0
         self.commands_accepted = 0
@@ -265,7 +270,7 @@ class SimNode(Node):
             return
         start = time.perf_counter()
         # The context goes invalid when SIGINT/SIGTERM arrive; stop publishing right there.
-        while not self.done and self.context.ok():
+        while not self.done and self.context.ok() and not self.stop.is_set():
             now = time.perf_counter()
             if self._rtf > 0.0:
                 due_ns = self._anchor_sim_ns + self._rtf * (now - self._anchor_wall) * _NS
@@ -286,7 +291,8 @@ class SimNode(Node):
             self._pending_command = None
             self.sim.command_vibration(amplitude_m, frequency_hz)
             self._record(lambda r: r.write_vibration_cmd(self.t_ns, amplitude_m, frequency_hz))
-        self.sim.advance((self.t_ns + self.period_ns) / _NS)
+        if not self._advance_to((self.t_ns + self.period_ns) / _NS):
+            return
         self.frames += 1
         self._publish_frame(Frame.take(self.sim))
         if self.duration_ns and self.t_ns >= self.duration_ns:
@@ -298,6 +304,35 @@ class SimNode(Node):
                                    + (' ...' if len(s) > 5 else ''))
             self.close()
             self.done = True
+
+    def _advance_to(self, t_end: float) -> bool:
+        """Simulate to ``t_end`` (s); False if a stop request cut it short.
+
+        A frame expected to cost more than ``_SLICE_WALL_S`` of wall time (a tiny time step, a
+        slow scene) runs in slices of about that, so SIGINT/SIGTERM end the node within a
+        second whatever the frame costs. Frames that are cheap run whole, as the bare
+        simulator runs them, to the bit."""
+        sim = self.sim
+        wall_per_s = self._wall_per_sim_s
+        if wall_per_s is None and sim.method != 'event_driven':
+            # not measured yet: a guess from the number of steps
+            wall_per_s = _SLICE_WALL_S / (_SLICE_FIRST_STEPS * sim.scene.solver.time_step)
+        while True:
+            if self.stop.is_set():
+                return False
+            remaining = span = t_end - sim.t
+            if wall_per_s is not None and span * wall_per_s > _SLICE_WALL_S:
+                span = max(_SLICE_WALL_S / wall_per_s, sim.scene.solver.time_step)
+            last = span >= remaining
+            t0, wall0 = sim.t, time.perf_counter()
+            sim.advance(t_end if last else t0 + span)
+            if sim.t > t0:
+                measured = (time.perf_counter() - wall0) / (sim.t - t0)
+                wall_per_s = self._wall_per_sim_s = (
+                    measured if self._wall_per_sim_s is None
+                    else 0.7 * self._wall_per_sim_s + 0.3 * measured)
+            if last:
+                return True
 
     # -- publishing ------------------------------------------------------------------------
 
@@ -491,7 +526,7 @@ class SimNode(Node):
             response.message = 'not paused: call ~/pause with data: true first'
             return response
         for _ in range(self.get_parameter('steps_per_call').value):
-            if self.done:
+            if self.done or self.stop.is_set():
                 break
             self.advance_frame()
         response.success = True
@@ -532,6 +567,7 @@ def main(args: list[str] | None = None, stop: threading.Event | None = None) -> 
         rclpy.try_shutdown()
         _restore(previous)
         return 2
+    node.stop = stop
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     try:
