@@ -423,6 +423,28 @@ def test_diagnostics_report_pacing_and_solver_health(graph):
     assert {kv.key: kv.value for kv in status.values}['frictionless_answers'] == '3'
 
 
+def test_a_real_time_factor_not_reached_is_a_warning_logged_once(graph):
+    # a 10-part pile asked to run 1000 times faster than real time on this machine
+    diagnostics = graph.listen(DiagnosticArray, '/diagnostics')
+    node = graph.start(scene='track_ten_boxes', real_time_factor=1000, diagnostics_period=0.1)
+    warned = []
+    node.get_logger().warning = lambda text, **kw: warned.append(text)
+    graph.spin_until(lambda: any(d.status[0].level == DiagnosticStatus.WARN
+                                 for d in diagnostics), timeout_s=60)
+    status = next(d.status[0] for d in diagnostics if d.status[0].level == DiagnosticStatus.WARN)
+    achieved = float({kv.key: kv.value for kv in status.values}['real_time_factor_achieved'])
+    assert achieved < 900 and 'real-time factor' in status.message
+    seen = len(diagnostics)
+    graph.spin_until(lambda: len(diagnostics) >= seen + 5)
+    assert len(warned) == 1 and '1000 requested' in warned[0]
+    # a factor it reaches clears it: 0 = as fast as possible is always reached
+    node.set_parameters([Parameter('real_time_factor', value=0)])     # an integer, too
+    seen = len(diagnostics)
+    graph.spin_until(lambda: len(diagnostics) >= seen + 2)
+    assert diagnostics[-1].status[0].level == DiagnosticStatus.OK
+    assert node.status()['real_time_factor_requested'] == 0.0
+
+
 FLOOD = '''
 import sys, time, rclpy
 from std_msgs.msg import Float64MultiArray

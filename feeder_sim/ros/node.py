@@ -71,6 +71,7 @@ _NS = 1_000_000_000
 _WALL_BUDGET_S = 0.01
 _WALL_BUDGET_FREE_S = 0.025
 _MAX_LAG_S = 0.25          # wall time behind schedule after which pacing forgets the debt
+_SLOW_PERIODS = 3          # diagnostics periods below the requested rate before a warning
 _SLICE_WALL_S = 0.1        # a frame that would take longer runs in slices of about this
 _SLICE_FIRST_STEPS = 20_000  # steps of a time-stepped method tried before any cost is known
 
@@ -244,6 +245,8 @@ class SimNode(Node):
         self._diag_wall = time.perf_counter()
         self._diag_sim_ns = self.t_ns
         self._rtf_achieved = 0.0
+        self._slow_periods = 0
+        self._rtf_told: float | None = None
         self.create_timer(0.001, self._on_timer, clock=steady)
         self.create_timer(value['diagnostics_period'], self._publish_diagnostics, clock=steady)
         self._publish_geometry()
@@ -396,8 +399,11 @@ class SimNode(Node):
         if wall > 0:
             self._rtf_achieved = (self.t_ns - self._diag_sim_ns) / _NS / wall
         self._diag_wall, self._diag_sim_ns = now, self.t_ns
+        slow = self._below_requested_rate()
         stats = self.sim.stats
         level, message = DiagnosticStatus.OK, 'running'
+        if slow:
+            level, message = DiagnosticStatus.WARN, slow
         if self.paused:
             message = 'paused'
         if self.done:
@@ -412,6 +418,24 @@ class SimNode(Node):
                 f'{stats.fallbacks} solver fallbacks, {stats.unconverged} unconverged solves')
         self.pub_diagnostics.publish(msgs.diagnostics(self.t_ns, 'feeder_sim: simulation', level,
                                                       message, self.status()))
+
+    def _below_requested_rate(self) -> str:
+        """'' or why the run is slower than asked: the achieved real-time factor stayed under
+        90 % of the requested one for _SLOW_PERIODS diagnostics periods (logged once per
+        requested factor)."""
+        running = not (self.paused or self.done) and self._rtf > 0.0
+        if running and self._rtf_achieved < 0.9 * self._rtf:
+            self._slow_periods += 1
+        else:
+            self._slow_periods = 0
+        if self._slow_periods < _SLOW_PERIODS:
+            return ''
+        text = (f'real-time factor {self._rtf_achieved:.3g} achieved, {self._rtf:g} requested: '
+                'the scene is too slow for it on this machine')
+        if self._rtf_told != self._rtf:
+            self._rtf_told = self._rtf
+            self.get_logger().warning(text + ' (real_time_factor 0 runs as fast as possible)')
+        return text
 
     def status(self) -> dict[str, object]:
         """What /diagnostics reports: pacing, solver health, commands, recording."""
