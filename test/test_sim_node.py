@@ -504,3 +504,13 @@ def test_a_command_flood_does_not_stall_the_simulation(graph):
     # flood costs, the middleware's work per message, does not.)
     assert flood_rate > 1.0, (flood_rate, calm_rate)
     assert service_latency < 2.0
+
+
+@pytest.mark.parametrize('duration', [0.015, 0.004])
+def test_duration_is_simulated_exactly(graph, duration):
+    # not a whole number of 10 ms frames: the last frame is shorter, none is skipped
+    clock = graph.listen(Clock, '/clock')
+    node = graph.start(duration=duration, real_time_factor=0.0)
+    graph.spin_until(lambda: node.done)
+    assert node.sim.t == pytest.approx(duration, abs=1e-12)
+    graph.spin_until(lambda: clock and clock[-1].clock.nanosec == round(duration * 1e9))

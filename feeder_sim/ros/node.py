@@ -294,7 +294,10 @@ class SimNode(Node):
             self._pending_command = None
             self.sim.command_vibration(amplitude_m, frequency_hz)
             self._record(lambda r: r.write_vibration_cmd(self.t_ns, amplitude_m, frequency_hz))
-        if not self._advance_to((self.t_ns + self.period_ns) / _NS):
+        t_next_ns = self.t_ns + self.period_ns
+        if self.duration_ns:
+            t_next_ns = min(t_next_ns, self.duration_ns)    # the last frame may be shorter
+        if not self._advance_to(t_next_ns / _NS):
             return
         self.frames += 1
         self._publish_frame(Frame.take(self.sim))
