@@ -6,7 +6,7 @@ window; a flat box that does not rotate moves like the point mass.
 
 Sweeps event_driven over the event/integration tolerance and time_stepping over the step
 (period / N). For each setting: relative error of the mean speed, wall time per simulated
-second (median of the repeats, advance() only) and solver counters.
+second (median of the repeats, advance_to() only) and solver counters.
 
 Run from the repository root:  .venv/bin/python benchmarks/conveying.py [--quick]
 Writes benchmarks/results/conveying.{json,png} (conveying_quick.* with --quick).
@@ -66,7 +66,7 @@ def run_once(method: str, setting: float, warmup: int, measured: int) -> dict:
     s_start = None
     for k in range(1, warmup + measured + 1):
         t0 = time.perf_counter()
-        sim.advance(k * PERIOD)
+        sim.advance_to(k * PERIOD)
         wall += time.perf_counter() - t0
         _, _, angle = sim.part_poses()
         max_angle = max(max_angle, float(np.max(np.abs(angle))))
@@ -168,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
     print(header)
     print(f'window: {warmup} warm-up + {measured} measured cycles '
           f'({(warmup + measured) * PERIOD:g} s simulated per run); wall time = median of '
-          f'{repeats} run(s) after an untimed warm-up run, advance() only')
+          f'{repeats} run(s) after an untimed warm-up run, advance_to() only')
     print(f'reference (point mass, same window): v_m = {reference:.9f} m/s '
           f'(V_m = {reference / point.velocity_scale:.6f}); '
           f'steady state (200 + 200 cycles): {steady:.9f} m/s, '

@@ -50,7 +50,7 @@ def measure(name: str, method: str, duration_s: float, repeats: int) -> dict:
         sim = Simulator(scene, **opts)
         s0 = float(sim.track_coordinates()[0][0])
         t0 = time.perf_counter()
-        sim.advance(duration_s)
+        sim.advance_to(duration_s)
         walls.append((time.perf_counter() - t0) / duration_s)
         position = float(sim.track_coordinates()[0][0]) - s0
     speed = steady_speed(Simulator(scene, **opts).scene)
@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
 
     warm = time.perf_counter()
     for method in METHODS:              # loads (or compiles) the kernels before any timing
-        Simulator(TRACK_SCENES[0, True], method=method).advance(0.05)
+        Simulator(TRACK_SCENES[0, True], method=method).advance_to(0.05)
     warm = time.perf_counter() - warm
     rows = []
     for name in TRACK_SCENES.values():

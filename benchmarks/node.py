@@ -59,7 +59,7 @@ def bare(duration_s: float) -> float:
     frames = round(duration_s * RATE_HZ)
     t0 = time.perf_counter()
     for k in range(1, frames + 1):
-        sim.advance(k / RATE_HZ)
+        sim.advance_to(k / RATE_HZ)
         sim.take_contacts()
     return (time.perf_counter() - t0) / duration_s
 
@@ -116,12 +116,12 @@ def pile_scene(n_parts: int) -> dict:
 def recording_per_frame(n_parts: int, frames: int = 300) -> float:
     """Median wall seconds of record_frame for n_parts parts (contacts included)."""
     sim = Simulator(pile_scene(n_parts))
-    sim.advance(0.05)
+    sim.advance_to(0.05)
     times = []
     with tempfile.TemporaryDirectory() as tmp:
         with McapRecorder(os.path.join(tmp, 'rec.mcap')) as recorder:
             for k in range(frames):
-                sim.advance(0.05 + (k + 1) / RATE_HZ)
+                sim.advance_to(0.05 + (k + 1) / RATE_HZ)
                 frame = Frame.take(sim)
                 t0 = time.perf_counter()
                 record_frame(recorder, frame)
@@ -144,7 +144,7 @@ def node_frame_cost(n_parts: int, frames: int = 200) -> float:
                            use_global_arguments=False)
         times = []
         for _ in range(frames):
-            sim_node.sim.advance(sim_node.sim.t + 1 / RATE_HZ)
+            sim_node.sim.advance_to(sim_node.sim.t + 1 / RATE_HZ)
             frame = Frame.take(sim_node.sim)
             t0 = time.perf_counter()
             sim_node._publish_frame(frame)

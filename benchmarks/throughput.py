@@ -81,7 +81,7 @@ def run_feeder(scene: dict, duration: float, walled: bool) -> dict:
     worst = 0
     for k in range(1, int(round(duration / CHUNK_S)) + 1):
         t0 = time.perf_counter()
-        sim.advance(k * CHUNK_S)
+        sim.advance_to(k * CHUNK_S)
         wall += time.perf_counter() - t0
         if walled:
             worst = max(worst, outside_walls(sim, sim.state.position[sim.part_indices], INSIDE_M))

@@ -74,7 +74,7 @@ def run(sim: Simulator, duration_s: float, *, publish_rate_hz: float = 100.0,
     traj.t.append(sim.t), traj.s.append(s), traj.speed.append(v)
     try:
         for k in range(1, n_frames + 1):
-            sim.advance(t0 + min(k * period, duration_s))
+            sim.advance_to(t0 + min(k * period, duration_s))
             frame = Frame.take(sim)
             traj.t.append(sim.t), traj.s.append(frame.s), traj.speed.append(frame.speed)
             outcomes.update(sim.t, *progress(sim, outcomes.spec), frame.angle - track_angle)

@@ -1,7 +1,8 @@
 """One simulated world and the way to drive it: the API the CLI, the ROS node and scripts share.
 
 >>> sim = Simulator('track_one_box')
->>> sim.advance(0.5)                 # integrate to t = 0.5 s of simulated time
+>>> sim.advance_to(0.5)              # integrate to t = 0.5 s of simulated time
+>>> sim.advance_by(0.1)              # and 0.1 s more
 >>> names, origins, angles = sim.part_poses()
 >>> sim.command_vibration(amplitude_m=0.5e-3, frequency_hz=50.0)
 """
@@ -268,8 +269,9 @@ class Simulator:
     def method(self) -> str:
         return self.scene.solver.method
 
-    def advance(self, t_end: float) -> None:
-        """Integrate to simulated time ``t_end`` (s); no-op if already there."""
+    def advance_to(self, t_end: float) -> None:
+        """Integrate to simulated time ``t_end`` (s); nothing happens if the simulation is
+        already there or past it (see :meth:`advance_by` to go on by a duration)."""
         if not math.isfinite(t_end):
             raise ValueError(f't_end must be finite, got {t_end!r}')
         if self.energy_check is None:
@@ -292,6 +294,14 @@ class Simulator:
         if duration_s / h > MAX_STEPS_PER_RUN:
             raise ValueError(f'{what} {duration_s:g} s is more than {MAX_STEPS_PER_RUN:.0e} '
                              f'steps of {h:g} s; give at most {MAX_STEPS_PER_RUN * h:g} s')
+
+    def advance_by(self, duration_s: float) -> None:
+        """Integrate ``duration_s`` (s, > 0) of simulated time from now on."""
+        self.check_duration(duration_s)
+        self.advance_to(self.t + duration_s)
+
+    # the first name of advance_to, kept for scripts that use it
+    advance = advance_to
 
     def _advance_checked(self, t_end: float) -> None:
         """``advance`` with the energy check after every step (every event: ``after_event``).

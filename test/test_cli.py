@@ -135,3 +135,23 @@ def test_accuracy_and_stability_verbs(tmp_path, capsys):
                  '--out', str(tmp_path / 'stab')]) == 0
     cell = json.loads((tmp_path / 'stab' / 'stability.json').read_text())['cells'][0]
     assert cell['status'] == 'PASS'
+
+
+def test_advance_to_is_a_time_and_advance_by_a_duration():
+    sim = Simulator('track_one_box')
+    sim.advance_to(0.05)
+    assert sim.t == pytest.approx(0.05, abs=1e-12)
+    sim.advance_to(0.05)                  # already there: nothing happens
+    sim.advance_to(0.01)                  # in the past: nothing happens
+    assert sim.t == pytest.approx(0.05, abs=1e-12)
+    sim.advance_by(0.02)
+    sim.advance_by(0.02)
+    assert sim.t == pytest.approx(0.09, abs=1e-12)
+    # the state of stops at the same times (to the round-off of 0.05 + 0.02)
+    other = Simulator('track_one_box')
+    for t in (0.05, 0.07, 0.09):
+        other.advance(t)                  # the first name of advance_to still works
+    np.testing.assert_allclose(sim.state.position, other.state.position, rtol=0, atol=1e-12)
+    for bad in (0.0, -1.0, math.nan, math.inf):
+        with pytest.raises(ValueError, match='duration must be a positive number'):
+            sim.advance_by(bad)

@@ -325,9 +325,9 @@ def run_one(case: Case, method: str, setting: float) -> dict:
         t0 = time.perf_counter()
         mark = 0.0
         if case.warmup_s:
-            sim.advance(case.warmup_s)
+            sim.advance_to(case.warmup_s)
             mark = _track_coordinate(sim)
-        sim.advance(case.duration_s)
+        sim.advance_to(case.duration_s)
         wall_per_s = (time.perf_counter() - t0) / case.duration_s
         value = case.measure(sim, mark)
         st = sim.stats

@@ -58,7 +58,7 @@ def trace(scene: Scene | str, duration_s: float, rate_hz: float = 200.0,
     t, s = [0.0], [0.0]
     wall = time.perf_counter()
     for k in range(1, round(duration_s * rate_hz) + 1):
-        sim.advance(k / rate_hz)
+        sim.advance_to(k / rate_hz)
         t.append(sim.t)
         s.append(float(sim.track_coordinates()[0][0]) - s0)
     wall = time.perf_counter() - wall
@@ -70,9 +70,9 @@ def steady_speed(scene: Scene | str, *, warmup_s: float = 1.0, measure_s: float 
                  method: str | None = None) -> float:
     """Mean speed along the track (m/s) of the first part after a warm-up."""
     sim = Simulator(scene, method=method)
-    sim.advance(warmup_s)
+    sim.advance_to(warmup_s)
     s0 = float(sim.track_coordinates()[0][0])
-    sim.advance(warmup_s + measure_s)
+    sim.advance_to(warmup_s + measure_s)
     return (float(sim.track_coordinates()[0][0]) - s0) / measure_s
 
 

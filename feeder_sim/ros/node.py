@@ -331,7 +331,7 @@ class SimNode(Node):
                 span = max(_SLICE_WALL_S / wall_per_s, sim.scene.solver.time_step)
             last = span >= remaining
             t0, wall0 = sim.t, time.perf_counter()
-            sim.advance(t_end if last else t0 + span)
+            sim.advance_to(t_end if last else t0 + span)
             if sim.t > t0:
                 measured = (time.perf_counter() - wall0) / (sim.t - t0)
                 wall_per_s = self._wall_per_sim_s = (

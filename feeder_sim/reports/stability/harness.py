@@ -156,7 +156,7 @@ def _run_scene(run: SceneRun, overrides: Mapping[str, Any] | None, deadline: flo
     n = max(1, int(round(run.duration_s / run.chunk_s)))
     next_note = time.perf_counter() + 10.0
     for k in range(1, n + 1):
-        sim.advance(run.duration_s * k / n)
+        sim.advance_to(run.duration_s * k / n)
         rec.sample()
         if rec.non_finite:
             break
