@@ -28,7 +28,7 @@ def _run(args: argparse.Namespace) -> int:
         plot_trajectory(result.trajectory, plot, f'{sim.scene.name} ({sim.method})')
     s = result.summary
     print(f"{s['scene']}: {s['simulated_s']:.3f} s simulated in {s['wall_s']:.2f} s wall "
-          f"({s['method']}, {s['solver']['lcp_solves']} LCP solves, "
+          f"({s['method']}, step {s['time_step_s']:g} s, {s['solver']['lcp_solves']} LCP solves, "
           f"{s['solver']['fallbacks']} fallbacks)")
     for part in s['parts']:
         print(f"  {part['name']}: mean speed along track "

@@ -106,6 +106,7 @@ def summary(sim: Simulator, traj: Trajectory, wall_s: float, duration_s: float) 
     return {
         'scene': sim.scene.name,
         'method': sim.method,
+        'time_step_s': float(sim.scene.solver.time_step),
         'simulated_s': float(duration_s),
         'wall_s': float(wall_s),
         'wall_per_simulated_s': float(wall_s / duration_s),

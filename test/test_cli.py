@@ -155,3 +155,20 @@ def test_advance_to_is_a_time_and_advance_by_a_duration():
     for bad in (0.0, -1.0, math.nan, math.inf):
         with pytest.raises(ValueError, match='duration must be a positive number'):
             sim.advance_by(bad)
+
+
+def test_switching_to_time_stepping_takes_a_step_fit_for_it():
+    # track_one_box is an event_driven scene: its 1 ms is that method's largest step, 20 per
+    # period of the 50 Hz drive; time stepping there conveys ~19 % slow
+    ed = Simulator('track_one_box')
+    ts = Simulator('track_one_box', method='time_stepping')
+    assert ts.scene.solver.time_step == pytest.approx(1.0 / (400 * 50.0))
+    chosen = Simulator('track_one_box', method='time_stepping', time_step=1e-4)
+    assert chosen.scene.solver.time_step == 1e-4                # a given step is kept
+    for sim in (ed, ts):
+        sim.advance_to(0.5)
+    s0 = [sim.track_coordinates()[0][0] for sim in (ed, ts)]
+    for sim in (ed, ts):
+        sim.advance_to(1.0)
+    speed = [(sim.track_coordinates()[0][0] - a) / 0.5 for sim, a in zip((ed, ts), s0)]
+    assert speed[1] == pytest.approx(speed[0], rel=0.03)        # first order: ~2 % at 400

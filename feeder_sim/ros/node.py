@@ -252,7 +252,8 @@ class SimNode(Node):
         self._publish_geometry()
         self._publish_frame(Frame.take(self.sim))
         self.get_logger().info(
-            f"scene '{self.sim.scene.name}' ({self.sim.method}, {len(self._parts)} parts), "
+            f"scene '{self.sim.scene.name}' ({self.sim.method}, step "
+            f'{self.sim.scene.solver.time_step:g} s, {len(self._parts)} parts), '
             f'{1e9 / self.period_ns:g} frames per simulated s, real-time factor {self._rtf:g}'
             + (f', recording to {self.recorder.path}' if self.recorder else '')
             + (', paused' if self.paused else ''))
