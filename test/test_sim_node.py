@@ -260,9 +260,9 @@ def test_bad_commands_are_rejected_counted_and_the_last_good_one_stays(graph):
     bad = [[math.nan, 50.0], [1e-3, math.inf], [-1e-3, 50.0], [0.2, 50.0], [1e-3, 2000.0],
            [1e-3], [1e-3, 50.0, 1.0], [1e-310, 1e-310], [5e-324, 50.0], [1e-3, 1e-320],
            [1e-12, 50.0], [1e-3, 1e-6]]
-    for data in bad:
+    for k, data in enumerate(bad, 1):          # one at a time: the queue holds ten
         pub.publish(Float64MultiArray(data=data))
-    graph.spin_until(lambda: node.commands_rejected == len(bad))
+        graph.spin_until(lambda k=k: node.commands_rejected == k)
     assert graph.call(Trigger, '/feeder_sim/step', Trigger.Request()).success
     assert (drive.amplitude_m, drive.frequency_hz) == (2e-4, 60.0)
     assert node.commands_accepted == 1
@@ -514,3 +514,55 @@ def test_duration_is_simulated_exactly(graph, duration):
     graph.spin_until(lambda: node.done)
     assert node.sim.t == pytest.approx(duration, abs=1e-12)
     graph.spin_until(lambda: clock and clock[-1].clock.nanosec == round(duration * 1e9))
+
+
+def test_reset_while_recording_starts_an_episode_with_monotonic_log_time(graph, tmp_path):
+    from mcap.reader import make_reader
+    from rerun.experimental import RrdReader
+
+    from feeder_sim.output.replay import replay
+
+    log = tmp_path / 'episodes.mcap'
+    node = graph.start(real_time_factor=0.0, record_path=str(log), start_paused=True,
+                       steps_per_call=10)
+    drive = node.sim.world.drives[node.sim.world.driven[0]]
+    initial = (drive.amplitude_m, drive.frequency_hz)
+    assert graph.call(Trigger, '/feeder_sim/step', Trigger.Request()).success    # to 0.1 s
+    node.sim.command_vibration(2e-4, 60.0)         # a command the reset must undo
+    assert graph.call(Trigger, '/feeder_sim/reset', Trigger.Request()).success
+    assert graph.call(Trigger, '/feeder_sim/step', Trigger.Request()).success    # to 0.1 s
+    node.close()
+
+    with open(log, 'rb') as f:
+        reader = make_reader(f)
+        messages = [(channel.topic, message) for _, channel, message in
+                    reader.iter_messages(log_time_order=False)]
+        metadata = {m.name: m.metadata for m in reader.iter_metadata()}
+    log_times = [m.log_time for _, m in messages]
+    assert log_times == sorted(log_times)                   # in file order, never back
+    clock = [m.log_time for topic, m in messages if topic == '/clock']
+    # episode 0: frames 0..0.1 s; episode 1 starts one frame (10 ms) after, at 0.11 s
+    assert metadata['episode_1'] == {'index': '1', 'log_time_ns': str(110_000_000),
+                                     'reason': 'reset'}
+    assert clock == [k * 10_000_000 for k in range(11)] + \
+        [110_000_000 + k * 10_000_000 for k in range(11)]
+    # the messages keep the simulated time: the clock says 0 again at the reset
+    clock_ns = [m.ros_msg.clock.sec * 10**9 + m.ros_msg.clock.nanosec
+                for m in read_ros2_messages(log, topics=['/clock'])]
+    assert clock_ns == 2 * [k * 10_000_000 for k in range(11)]
+    # the drive the reset restored is in the log at the episode's start
+    commands = [(m.log_time_ns, tuple(m.ros_msg.data))
+                for m in read_ros2_messages(log, topics=['/vibration_cmd'])]
+    assert commands[-1] == (110_000_000, initial)
+
+    # the replay keeps the episodes apart: an episode timeline and a mark at the reset
+    rrd = replay(log, tmp_path / 'episodes.rrd', spawn=False)
+    episodes, marks = set(), []
+    for chunk in RrdReader(str(rrd)).stream().to_chunks():
+        batch = chunk.to_record_batch()
+        if chunk.entity_path == '/world/parts/origins' and 'episode' in batch.schema.names:
+            episodes.update(batch.column('episode').to_pylist())
+        if chunk.entity_path == '/episodes':
+            marks += batch.column('TextLog:text').to_pylist()
+    assert episodes == {0, 1}
+    assert len(marks) == 1 and 'reset' in str(marks[0])

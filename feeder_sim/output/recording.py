@@ -335,9 +335,10 @@ class McapRecorder:
 
     All channels of :data:`TOPICS` are registered when the file is opened.  Times are simulated
     time in integer nanoseconds; each message's log time, publish time and header stamp are
-    that time.  Methods raise :class:`RecordingError` when the file cannot be written; after
-    such an error the recorder stops writing (the file keeps every chunk completed before the
-    error) and further writes raise :class:`RecordingError` too.
+    that time (after a reset, :meth:`begin_episode`, log and publish times go on from where
+    the previous episode ended).  Methods raise :class:`RecordingError` when the file cannot
+    be written; after such an error the recorder stops writing (the file keeps every chunk
+    completed before the error) and further writes raise :class:`RecordingError` too.
 
     ``close()`` finalizes the file; it is idempotent, thread safe and may be called from a
     signal handler, also while a write is in progress in the interrupted code: the close then
@@ -384,6 +385,9 @@ class McapRecorder:
         self._last_flush = time.monotonic()
         self._frames: dict[str, _Frame] = {}
         self._names_cache: tuple[tuple[str, ...], bytes] = ((), _U32.pack(0))
+        self._episode = 0             # index of the running episode (reset count)
+        self._log_offset_ns = 0       # log time = simulated time + this (see begin_episode)
+        self._last_log_ns = 0
 
         try:
             self._file = _ChunkFile(self._path)
@@ -541,6 +545,24 @@ class McapRecorder:
             self._writer.add_metadata(name, data)
             self._file.flush()
 
+    def begin_episode(self, gap_ns: int) -> int:
+        """A new episode (the simulation was reset: its time starts again at 0); returns its
+        index (the first is 0).
+
+        Log times stay monotonic across episodes: from now on a message of simulated time t
+        is logged at ``t + offset``, the offset putting t = 0 ``gap_ns`` after the last
+        message so far; header stamps keep the simulated time. A metadata record
+        ``episode_<index>`` holds the index and the log time at which the episode starts."""
+        with self._writing():
+            self._episode += 1
+            self._log_offset_ns = self._last_log_ns + int(gap_ns)
+            self._writer.add_metadata(f'episode_{self._episode}', {
+                'index': str(self._episode), 'log_time_ns': str(self._log_offset_ns),
+                'reason': 'reset'})
+            self._writer.flush()
+            self._file.flush()
+        return self._episode
+
     def flush(self) -> None:
         """End the open chunk (if it holds messages) and hand everything to the OS."""
         with self._writing():
@@ -624,8 +646,11 @@ class McapRecorder:
         with self._writing():
             sequence = (self._sequence[channel_id] + 1) & 0xFFFFFFFF
             self._sequence[channel_id] = sequence
+            log_ns = t_ns + self._log_offset_ns
+            self._last_log_ns = max(self._last_log_ns, log_ns)
             self._writer.add_message(
-                channel_id, log_time=t_ns, data=payload, publish_time=t_ns, sequence=sequence)
+                channel_id, log_time=log_ns, data=payload, publish_time=log_ns,
+                sequence=sequence)
             self._messages += 1
             if self._file.pending:
                 # The writer just finished a chunk and its message indexes.

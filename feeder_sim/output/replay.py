@@ -4,7 +4,10 @@
 >>> replay('run.mcap', 'out.rrd', spawn=False)
 
 Everything is logged on the duration timeline ``sim_time`` (simulated time; each message's
-log time) and nothing on the wall-clock ``log_time`` / ``log_tick`` timelines:
+log time) and nothing on the wall-clock ``log_time`` / ``log_tick`` timelines. A log of a node
+that was reset holds several episodes: ``sim_time`` goes on across them (each starts one frame
+after the previous ended), the ``episode`` timeline holds each message's episode index and
+``episode_time`` its simulated time within the episode, and ``/episodes`` marks each reset:
 
 ``/world`` (2D view, metres, world frame; the view flips it so that y points up)
     ``/world/track``            static and kinematic bodies: closed outlines, logged once
@@ -43,7 +46,7 @@ messages, 15 MB) about 1.7 s.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 import functools
 import hashlib
 import io
@@ -87,6 +90,8 @@ log = logging.getLogger('feeder_sim')
 
 APPLICATION_ID = 'feeder_sim'
 TIMELINE = 'sim_time'
+EPISODE_TIMELINE = 'episode'
+EPISODE_TIME_TIMELINE = 'episode_time'
 
 #: The reference impulse (a percentile of all contact impulse magnitudes in the log) is drawn
 #: as this fraction of the characteristic part size.
@@ -141,6 +146,8 @@ class _Log:
     vibration_t: np.ndarray     # (v,) int64
     vibration: np.ndarray       # (v, 2) amplitude m, frequency Hz
     end_t: int                  # largest message time seen
+    # log times (ns) at which episodes 1, 2, ... start (the simulation was reset); empty: one
+    episode_starts: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
 
 def _check_mcap(path: Path) -> None:
@@ -379,7 +386,11 @@ def _messages(path: Path) -> Iterator[tuple[str, int, object]]:
 
 def _read_log(path: Path) -> _Log:
     _check_mcap(path)
-    metadata = _read_metadata(path).get('feeder_sim', {})
+    records = _read_metadata(path)
+    metadata = records.get('feeder_sim', {})
+    episode_starts = np.sort(np.array(
+        [int(m.get('log_time_ns', 0)) for name, m in records.items()
+         if name.startswith('episode_')], np.int64))
     poses, contacts, track, vibration = [], [], [], []
     end_t = 0
     for topic, t_ns, message in _messages(path):
@@ -409,7 +420,7 @@ def _read_log(path: Path) -> _Log:
         series=_track_series(track),
         vibration_t=np.array([m[0] for m in vibration], np.int64),
         vibration=np.array([m[1] for m in vibration], float).reshape(-1, 2),
-        end_t=end_t,
+        end_t=end_t, episode_starts=episode_starts,
     )
 
 
@@ -514,8 +525,18 @@ def _part_names(log_: _Log) -> list[str]:
 # Logging to rerun
 
 
-def _time_column(t_ns: np.ndarray) -> rr.TimeColumn:
-    return rr.TimeColumn(TIMELINE, duration=np.asarray(t_ns, np.int64).astype('timedelta64[ns]'))
+def _time_columns(log_: _Log, t_ns: np.ndarray) -> list[rr.TimeColumn]:
+    """``sim_time`` (the log time) and, in a log with resets, ``episode`` (its index) and
+    ``episode_time`` (simulated time since the reset)."""
+    t = np.asarray(t_ns, np.int64)
+    columns = [rr.TimeColumn(TIMELINE, duration=t.astype('timedelta64[ns]'))]
+    if log_.episode_starts.size:
+        episode = np.searchsorted(log_.episode_starts, t, side='right')
+        start = np.concatenate([[0], log_.episode_starts])[episode]
+        columns += [rr.TimeColumn(EPISODE_TIMELINE, sequence=episode),
+                    rr.TimeColumn(EPISODE_TIME_TIMELINE,
+                                  duration=(t - start).astype('timedelta64[ns]'))]
+    return columns
 
 
 def _strips_array(vertices: np.ndarray, lengths: np.ndarray) -> pa.Array:
@@ -543,7 +564,7 @@ def _log_fixed_bodies(rec: rr.RecordingStream, scene: Scene) -> None:
 
 def _log_parts(rec: rr.RecordingStream, log_: _Log, names: list[str]) -> None:
     parts = _parts(log_.scene)
-    time = _time_column(log_.pose_t)
+    time = _time_columns(log_, log_.pose_t)
     outlines = bool(parts) and bool(np.all(log_.pose_count == len(parts)))
     if parts and not outlines:
         log.warning('%s: pose counts differ from the scene\'s %d parts; drawing origins only',
@@ -552,7 +573,7 @@ def _log_parts(rec: rr.RecordingStream, log_: _Log, names: list[str]) -> None:
     origin_path = '/world/parts/origins' if outlines else '/world/parts'
     rec.log(origin_path, rr.Points2D.from_fields(
         colors=colours, radii=_POINT_RADIUS, labels=None if outlines else names), static=True)
-    rec.send_columns(origin_path, indexes=[time],
+    rec.send_columns(origin_path, indexes=time,
                      columns=rr.Points2D.columns(positions=log_.origin).partition(
                          log_.pose_count))
     if outlines:
@@ -576,7 +597,7 @@ def _log_outlines(rec: rr.RecordingStream, log_: _Log, parts: list,
     rec.log('/world/parts', rr.LineStrips2D.from_fields(
         colors=[_colour(i) for i, _ in loops], labels=[parts[i].name for i, _ in loops],
         radii=_LINE_WIDTH), static=True)
-    rec.send_columns('/world/parts', indexes=[time],
+    rec.send_columns('/world/parts', indexes=time,
                      columns=rr.LineStrips2D.columns(strips=strips).partition(
                          np.full(n, len(loops))))
 
@@ -586,15 +607,15 @@ def _log_contacts(rec: rr.RecordingStream, log_: _Log, scale: float) -> None:
         return
     c = log_.contacts
     points = np.stack([c['x'], c['y']], 1).astype(np.float32)
-    time = _time_column(log_.contact_t)
+    time = _time_columns(log_, log_.contact_t)
     rec.log('/world/contacts/points', rr.Points2D.from_fields(
         colors=_CONTACT_COLOUR, radii=_POINT_RADIUS), static=True)
-    rec.send_columns('/world/contacts/points', indexes=[time],
+    rec.send_columns('/world/contacts/points', indexes=time,
                      columns=rr.Points2D.columns(positions=points).partition(
                          log_.contact_count))
     rec.log('/world/contacts/impulses', rr.Arrows2D.from_fields(
         colors=_IMPULSE_COLOUR, radii=_LINE_WIDTH), static=True)
-    rec.send_columns('/world/contacts/impulses', indexes=[time],
+    rec.send_columns('/world/contacts/impulses', indexes=time,
                      columns=rr.Arrows2D.columns(
                          origins=points,
                          vectors=_impulse_vectors(c, scale).astype(np.float32),
@@ -607,14 +628,25 @@ def _log_series(rec: rr.RecordingStream, log_: _Log, names: list[str]) -> None:
     for k, (name, s) in enumerate(log_.series.items()):
         colour = _colour(index.get(name, k))
         part = rr.escape_entity_path_part(name)
-        time = _time_column(s.t)
+        time = _time_columns(log_, s.t)
         for kind, values, unit in (('position', s.position, 'mm'),
                                    ('speed', s.speed, 'mm/s')):
             path = f'/plots/{kind}/{part}'
             rec.log(path, rr.SeriesLines(names=f'{name} [{unit}]', colors=colour),
                     static=True)
-            rec.send_columns(path, indexes=[time], columns=rr.Scalars.columns(
+            rec.send_columns(path, indexes=time, columns=rr.Scalars.columns(
                 scalars=1e3 * np.asarray(values, float)))
+
+
+def _log_episodes(rec: rr.RecordingStream, log_: _Log) -> None:
+    """A line in ``/episodes`` where each reset starts a new episode."""
+    for k, start in enumerate(log_.episode_starts.tolist(), 1):
+        rec.set_time(TIMELINE, duration=np.timedelta64(start, 'ns'))
+        rec.set_time(EPISODE_TIMELINE, sequence=k)
+        rec.set_time(EPISODE_TIME_TIMELINE, duration=np.timedelta64(0, 'ns'))
+        rec.log('/episodes', rr.TextLog(f'episode {k}: the simulation was reset, simulated '
+                                        'time starts again at 0'))
+    rec.reset_time()
 
 
 def _log_vibration(rec: rr.RecordingStream, log_: _Log) -> None:
@@ -625,12 +657,12 @@ def _log_vibration(rec: rr.RecordingStream, log_: _Log) -> None:
     if log_.end_t > t[-1]:
         t = np.append(t, log_.end_t)
         values = np.concatenate([values, values[-1:]])
-    time = _time_column(t)
+    time = _time_columns(log_, t)
     for name, column, factor, label in (('amplitude', 0, 1e6, 'amplitude [µm, 0-peak]'),
                                         ('frequency', 1, 1.0, 'frequency [Hz]')):
         path = f'/plots/vibration/{name}'
         rec.log(path, rr.SeriesLines(names=label, interpolation_mode='StepAfter'), static=True)
-        rec.send_columns(path, indexes=[time],
+        rec.send_columns(path, indexes=time,
                          columns=rr.Scalars.columns(scalars=factor * values[:, column]))
 
 
@@ -731,6 +763,7 @@ def _write_rrd(log_: _Log, rrd: Path) -> None:
         _log_contacts(rec, log_, scale)
         _log_series(rec, log_, names)
         _log_vibration(rec, log_)
+        _log_episodes(rec, log_)
         rec.flush()
         rec.disconnect()
         # Written under a temporary name so that a failed conversion leaves no .rrd behind.

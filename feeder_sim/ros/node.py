@@ -536,6 +536,11 @@ class SimNode(Node):
         self.sim.reset()
         self._pending_command = None
         self._anchor()
+        # the log goes on: a new episode one frame after the last, with the drive restored
+        self._record(lambda r: r.begin_episode(self.period_ns))
+        for i in self.sim.world.driven[:1]:
+            d = self.sim.world.drives[i]
+            self._record(lambda r, d=d: r.write_vibration_cmd(0, d.amplitude_m, d.frequency_hz))
         self._publish_frame(Frame.take(self.sim))
         response.success = True
         response.message = f"scene '{self.sim.scene.name}' reset to t = 0"
