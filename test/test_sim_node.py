@@ -566,3 +566,36 @@ def test_reset_while_recording_starts_an_episode_with_monotonic_log_time(graph, 
             marks += batch.column('TextLog:text').to_pylist()
     assert episodes == {0, 1}
     assert len(marks) == 1 and 'reset' in str(marks[0])
+
+
+def test_a_second_node_of_the_same_name_refuses_to_run(graph):
+    first = graph.start(real_time_factor=1.0)
+    graph.spin_for(3.5)                            # past its own start-up check
+    g = Graph()
+    try:
+        second = g.start(real_time_factor=1.0)
+        g.spin_until(lambda: second.done, timeout_s=10.0)
+        assert second.exit_code == 2
+    finally:
+        g.close()
+    graph.spin_for(0.5)
+    assert not first.done and first.exit_code == 0
+
+
+def test_a_node_in_its_own_namespace_runs_but_is_told_of_a_shared_clock(graph):
+    first = graph.start(real_time_factor=1.0)
+    graph.spin_for(0.5)
+    g = Graph()
+    try:
+        second = SimNode(context=g.context, namespace='cell2', use_global_arguments=False,
+                         parameter_overrides=[Parameter('real_time_factor', value=1.0)])
+        g.node = second
+        warned = []
+        second.get_logger().warning = lambda text, **kw: warned.append(text)
+        g.executor.add_node(second)
+        g.spin_for(3.5)
+        assert not second.done
+        assert any('another node publishes /clock' in w for w in warned)
+    finally:
+        g.close()
+    assert not first.done

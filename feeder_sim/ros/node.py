@@ -71,6 +71,7 @@ _NS = 1_000_000_000
 _WALL_BUDGET_S = 0.01
 _WALL_BUDGET_FREE_S = 0.025
 _MAX_LAG_S = 0.25          # wall time behind schedule after which pacing forgets the debt
+_NAMESAKE_WINDOW_S = 3.0   # after start-up, the node looks this long for a namesake
 _SLOW_PERIODS = 3          # diagnostics periods below the requested rate before a warning
 _SLICE_WALL_S = 0.1        # a frame that would take longer runs in slices of about this
 _SLICE_FIRST_STEPS = 20_000  # steps of a time-stepped method tried before any cost is known
@@ -249,6 +250,9 @@ class SimNode(Node):
         self._rtf_told: float | None = None
         self.create_timer(0.001, self._on_timer, clock=steady)
         self.create_timer(value['diagnostics_period'], self._publish_diagnostics, clock=steady)
+        self._started_wall = time.perf_counter()
+        self._clock_shared = False
+        self._namesake_timer = self.create_timer(0.2, self._look_for_namesakes, clock=steady)
         self._publish_geometry()
         self._publish_frame(Frame.take(self.sim))
         self.get_logger().info(
@@ -422,6 +426,30 @@ class SimNode(Node):
                 f'{stats.fallbacks} solver fallbacks, {stats.unconverged} unconverged solves')
         self.pub_diagnostics.publish(msgs.diagnostics(self.t_ns, 'feeder_sim: simulation', level,
                                                       message, self.status()))
+
+    def _look_for_namesakes(self) -> None:
+        """While starting up: refuse to run beside another node of the same name (their
+        services and parameters would be one), warn when another node publishes our clock
+        (two simulated times would interleave on it)."""
+        if time.perf_counter() - self._started_wall > _NAMESAKE_WINDOW_S or self.done:
+            self._namesake_timer.cancel()
+            return
+        me = (self.get_name(), self.get_namespace())
+        if self.get_node_names_and_namespaces().count(me) > 1:
+            name = self.get_fully_qualified_name()
+            self.get_logger().error(
+                f'another node named {name} is running; this one stops. Start it in its own '
+                'namespace with its own clock: --ros-args -r __ns:=/cell2 -r /clock:=/cell2/clock')
+            self._namesake_timer.cancel()
+            self.close()
+            self.done, self.exit_code = True, 2
+            return
+        clock = self.pub_clock.topic_name
+        if not self._clock_shared and self.count_publishers(clock) > 1:
+            self._clock_shared = True
+            self.get_logger().warning(
+                f'another node publishes {clock}: two simulated times would interleave there. '
+                f'Remap this one: --ros-args -r {clock}:=<namespace>{clock}')
 
     def _below_requested_rate(self) -> str:
         """'' or why the run is slower than asked: the achieved real-time factor stayed under
