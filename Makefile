@@ -6,22 +6,33 @@
 VENV ?= .venv
 PY := $(VENV)/bin/python
 PIP := $(PY) -m pip --disable-pip-version-check -q
-STAMP := $(VENV)/.installed
+# `make run` installs what running needs (the ROS 2 wheels, rerun for the replay); `make test`
+# adds the test tools (colcon, pytest, hypothesis, ruff, the peer engine)
+RUN_STAMP := $(VENV)/.installed-run
+TEST_STAMP := $(VENV)/.installed-test
 
 .PHONY: setup run test bench clean
 
-$(STAMP): setup.py package.xml
+$(PY):
 	python3 -m venv $(VENV)
 	$(PIP) install --upgrade pip setuptools wheel
-	$(PIP) install -e '.[test]'
-	touch $(STAMP)
 
-setup: $(STAMP)
+$(RUN_STAMP): setup.py package.xml | $(PY)
+	@echo "installing feeder_sim with the ROS 2 wheels and rerun into $(VENV) (about a minute)"
+	$(PIP) install -e '.[ros,replay]'
+	touch $(RUN_STAMP)
+
+$(TEST_STAMP): setup.py package.xml | $(PY)
+	@echo "installing feeder_sim with the ROS 2 wheels, rerun and the test tools into $(VENV)"
+	$(PIP) install -e '.[test]'
+	touch $(TEST_STAMP) $(RUN_STAMP)
+
+setup: $(RUN_STAMP)
 
 DURATION ?= 5.0
 RTF ?= 1.0
 
-run: $(STAMP)
+run: $(RUN_STAMP)
 	mkdir -p out
 	ROS_AUTOMATIC_DISCOVERY_RANGE=$${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST} \
 	$(VENV)/bin/sim_node --ros-args --params-file config/sim_node.params.yaml \
@@ -29,11 +40,11 @@ run: $(STAMP)
 	    -p real_time_factor:=$(RTF)
 	$(VENV)/bin/feeder-sim replay out/track_one_box.mcap --rrd out/track_one_box.rrd --no-viewer
 
-test: $(STAMP)
+test: $(TEST_STAMP)
 	$(VENV)/bin/ruff check feeder_sim test benchmarks
 	$(PY) -m pytest -q test
 
-bench: $(STAMP)
+bench: $(TEST_STAMP)
 	$(PY) benchmarks/conveying.py
 	$(PY) benchmarks/pile.py
 	$(PY) benchmarks/throughput.py

@@ -51,6 +51,9 @@ QUICK = {'warmup': 6, 'measured': 4, 'repeats': 1,
          'steps_per_cycle': (25, 100)}
 
 
+ROOT = Path(__file__).resolve().parents[1]
+
+
 def gamma() -> float:
     omega = 2.0 * math.pi * FREQUENCY_HZ
     return AMPLITUDE_M * omega ** 2 * math.sin(PSI) / (G * math.cos(THETA))
@@ -152,6 +155,9 @@ def plot(rows: list[dict], path: Path, title: str) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--quick', action='store_true', help='fewer settings, cycles, repeats')
+    parser.add_argument('--out', default=str(ROOT / 'out' / 'bench'),
+                        help='output folder (default out/bench; benchmarks/results holds the '
+                             'published run)')
     args = parser.parse_args(argv)
     sources = source_info()        # before the runs: the code that gets imported and measured
     cfg = QUICK if args.quick else FULL
@@ -261,7 +267,7 @@ def main(argv: list[str] | None = None) -> int:
     print(target)
     print(verdict)
 
-    out_dir = Path(__file__).resolve().parent / 'results'
+    out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     stem = 'conveying_quick' if args.quick else 'conveying'
     result = {

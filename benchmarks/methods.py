@@ -88,7 +88,9 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--repeats', type=int, default=3)
     ap.add_argument('--duration', type=float, default=1.0, help='simulated s per timed run')
-    ap.add_argument('--out', default=str(Path(__file__).parent / 'results'))
+    ap.add_argument('--out', default=str(Path(__file__).resolve().parents[1] / 'out' / 'bench'),
+                    help='output folder (default out/bench; benchmarks/results holds the '
+                         'published run)')
     args = ap.parse_args(argv)
 
     warm = time.perf_counter()

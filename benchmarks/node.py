@@ -159,7 +159,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--duration', type=float, default=4.0, help='simulated s per run')
     parser.add_argument('--repeats', type=int, default=3)
-    parser.add_argument('--out', default=str(ROOT / 'benchmarks' / 'results' / 'node.json'))
+    parser.add_argument('--out', default=str(ROOT / 'out' / 'bench' / 'node.json'),
+                        help='JSON output (default out/bench/node.json)')
     args = parser.parse_args()
 
     bare(0.2), node(0.2)                     # load compiled kernels and DDS once

@@ -194,7 +194,8 @@ def main() -> None:
     ap.add_argument('--duration', type=float, default=1.0, help='simulated seconds per run')
     ap.add_argument('--repeats', type=int, default=3,
                     help='runs per part count; the table shows the run with the median wall time')
-    ap.add_argument('--out', default=str(ROOT / 'benchmarks' / 'results' / 'pile.json'))
+    ap.add_argument('--out', default=str(ROOT / 'out' / 'bench' / 'pile.json'),
+                    help='JSON output (default out/bench/pile.json)')
     args = ap.parse_args()
     t_warm = warm_up()
     print(f'numba kernels loaded/compiled and warm-up run in {t_warm:.1f} s', flush=True)

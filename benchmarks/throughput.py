@@ -209,7 +209,8 @@ def main() -> None:
     ap.add_argument('--conveying-duration', type=float, default=0.6,
                     help='simulated s of the one-part run (30 periods)')
     ap.add_argument('--repeats', type=int, default=3)
-    ap.add_argument('--out', default=str(ROOT / 'benchmarks' / 'results' / 'throughput.json'))
+    ap.add_argument('--out', default=str(ROOT / 'out' / 'bench' / 'throughput.json'),
+                    help='JSON output, and a PNG beside it (default out/bench/throughput.json)')
     args = ap.parse_args()
     if args.repeats < 3:
         ap.error('--repeats: at least 3 (the table shows medians)')
