@@ -637,4 +637,41 @@ def test_an_outline_with_too_many_vertices_is_refused_before_any_work():
         parse_scene(data)
     # the largest allowed outline is checked in about a second (O(n^2) memory: ~100 MB)
     data['bodies'][-1]['polygon'] = (0.01 * np.c_[np.cos(th[::30]), np.sin(th[::30])]).tolist()
+    data['bodies'][-1]['pose'] = [0.0, 0.05, 0.0]       # clear of the floor
     assert len(parse_scene(data).bodies[-1].outlines[0]) == 1000
+
+
+@pytest.mark.parametrize('pose, refused', [
+    ([0.0, 0.0, 0.0], True),              # the box inside the slab (enclosed)
+    ([0.0, -0.03, 0.3], True),            # deep in it, turned
+    ([0.0, 0.0049, 0.0], False),          # sunk 0.1 mm of 10 mm: a contact resolves it
+    ([0.0, 0.005, 0.0], False),           # resting on it
+])
+def test_a_part_starting_deep_inside_another_body_is_refused(pose, refused):
+    data = {'bodies': [{'name': 'slab', 'type': 'static', 'pose': [0.0, 0.0, 0.0],
+                        'polygon': [[-0.5, -0.1], [0.5, -0.1], [0.5, 0.0], [-0.5, 0.0]]},
+                       {'name': 'box', 'type': 'dynamic', 'mass': 0.01, 'pose': pose,
+                        'polygon': [[-0.01, -0.005], [0.01, -0.005], [0.01, 0.005],
+                                    [-0.01, 0.005]]}]}
+    if refused:
+        with pytest.raises(SceneError, match=r"bodies\[1\]\.pose: 'box' and 'slab' overlap by "
+                                             r'.* m at the start .* move them apart'):
+            parse_scene(data)
+    else:
+        parse_scene(data)
+
+
+def test_the_start_overlap_uses_where_the_drive_puts_a_body_at_t_0():
+    # a plate at x = 0 whose drive starts it 15 mm to the left (phase 3 pi / 2): a part at
+    # x = -15 mm would start inside it, one at +15 mm is clear
+    def scene(x_part):
+        return {'bodies': [
+            {'name': 'plate', 'type': 'kinematic', 'pose': [0.0, 0.0, 0.0],
+             'polygon': [[-0.01, -0.01], [0.01, -0.01], [0.01, 0.0], [-0.01, 0.0]],
+             'vibration': {'amplitude': 0.015, 'frequency': 1.0, 'angle': 0.0,
+                           'phase': 3 * np.pi / 2}},
+            {'name': 'box', 'type': 'dynamic', 'mass': 0.01, 'pose': [x_part, -0.005, 0.0],
+             'polygon': [[-0.004, -0.004], [0.004, -0.004], [0.004, 0.004], [-0.004, 0.004]]}]}
+    with pytest.raises(SceneError, match="'box' and 'plate' overlap"):
+        parse_scene(scene(-0.015))
+    parse_scene(scene(0.015))

@@ -249,6 +249,27 @@ def convex_overlap(a, b, tol: float = 1e-9) -> bool:
     return True
 
 
+def convex_penetration(a, b) -> float:
+    """How deep two convex polygons overlap (m): the smallest overlap of their projections on
+    either polygon's edge normals (separating-axis test); <= 0 when they are apart."""
+    a = _as_vertices(a)
+    b = _as_vertices(b)
+    depth = np.inf
+    for axis in np.vstack([edge_normals(a), edge_normals(b)]):
+        pa, pb = a @ axis, b @ axis
+        depth = min(depth, pa.max() - pb.min(), pb.max() - pa.min())
+        if depth <= 0.0:
+            break
+    return float(depth)
+
+
+def min_width(vertices) -> float:
+    """The smallest width of a convex polygon (m): its thinnest projection on an edge normal."""
+    v = _as_vertices(vertices)
+    spans = v @ edge_normals(v).T
+    return float(np.min(spans.max(axis=0) - spans.min(axis=0)))
+
+
 def _triangulate(v: np.ndarray) -> list[tuple[int, int, int]]:
     """Ear-clipping triangulation of a simple CCW polygon, as CCW index triples."""
     area_tol = REL_TOL * _size(v) ** 2

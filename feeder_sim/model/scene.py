@@ -54,6 +54,9 @@ MAX_POLYGON_VERTICES = 1000
 MAX_PIECES = 200
 MAX_FILE_BYTES = 2 * 2 ** 20
 MAX_NESTING = 32
+# A part may start at most this fraction of its thinner piece inside another body: the
+# contact search looks no deeper (contact.collision.DEPTH_FRACTION).
+MAX_START_OVERLAP = 0.25
 
 
 class SceneError(ValueError):
@@ -622,7 +625,47 @@ def _bodies(value, path: str) -> tuple[BodySpec, ...]:
                            f'{path}[{first_use[body.name]}]); body names must be unique')
         first_use[body.name] = k
         bodies.append(body)
+    _check_start_overlap(bodies, path)
     return tuple(bodies)
+
+
+def _check_start_overlap(bodies: list[BodySpec], path: str) -> None:
+    """Refuse a part that starts deep inside another body (MAX_START_OVERLAP of the thinner
+    piece): contacts that deep are not found, so the part would pass through or keep
+    colliding with what encloses it."""
+    world, owner = [], []
+    for k, body in enumerate(bodies):
+        c, s_ = math.cos(body.pose[2]), math.sin(body.pose[2])
+        rot = np.array([[c, -s_], [s_, c]])
+        origin = body.pose[:2].copy()
+        if body.vibration is not None:      # where the drive puts it at t = 0
+            v = body.vibration
+            direction = body.pose[2] + v.angle
+            origin += v.amplitude * math.sin(v.phase) * np.array([math.cos(direction),
+                                                                   math.sin(direction)])
+        for piece in body.pieces:
+            world.append(piece @ rot.T + origin)
+            owner.append(k)
+    if len(world) < 2:
+        return
+    owner = np.array(owner)
+    dynamic = np.array([bodies[k].type == 'dynamic' for k in owner])
+    lo = np.array([w.min(axis=0) for w in world])
+    hi = np.array([w.max(axis=0) for w in world])
+    for i in np.flatnonzero(dynamic):
+        # the pieces whose boxes overlap piece i's (each pair once if both are dynamic)
+        near = np.flatnonzero(np.all(lo <= hi[i], axis=1) & np.all(hi >= lo[i], axis=1)
+                              & (owner != owner[i]) & (~dynamic | (np.arange(len(world)) > i)))
+        for j in near:
+            depth = geometry.convex_penetration(world[i], world[j])
+            allowed = MAX_START_OVERLAP * min(geometry.min_width(world[i]),
+                                              geometry.min_width(world[j]))
+            if depth > allowed:
+                a, b = bodies[owner[i]].name, bodies[owner[j]].name
+                raise _Invalid(f'{path}[{owner[j] if owner[j] > owner[i] else owner[i]}].pose',
+                               f'{a!r} and {b!r} overlap by {depth:.3g} m at the start (more '
+                               f'than {allowed:.3g} m, a quarter of the thinner piece); move '
+                               'them apart: parts must start outside other bodies')
 
 
 def _track_name(value, path: str) -> str | None:
