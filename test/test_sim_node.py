@@ -518,7 +518,7 @@ def test_duration_is_simulated_exactly(graph, duration):
 
 def test_reset_while_recording_starts_an_episode_with_monotonic_log_time(graph, tmp_path):
     from mcap.reader import make_reader
-    from rerun.experimental import RrdReader
+    from rerun.chunk import RrdReader
 
     from feeder_sim.output.replay import replay
 

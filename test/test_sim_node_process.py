@@ -283,3 +283,28 @@ def test_a_signal_ends_long_physics_within_a_second(workspace, tmp_path, sig, pr
         by_topic.setdefault(m.channel.topic, []).append(m)
     frames = len(by_topic['/clock'])
     assert len(by_topic['/feeder_sim/part_poses']) == frames
+
+
+def test_signals_at_random_moments_end_the_node_cleanly(workspace, tmp_path, processes):
+    # seeded moments from the imports (the interpreter's own start-up, before any of our
+    # code runs, ends with the signal's default action) to full speed, one signal or two
+    rng = np.random.default_rng(5)
+    for k, delay in enumerate([0.3, *rng.uniform(0.3, 4.0, 3)]):
+        log = tmp_path / f'random_{k}.mcap'
+        proc = start_node(workspace, processes, '-p', f'record_path:={log}',
+                          '-p', 'real_time_factor:=0.0', '-p', 'record_flush_period:=0.1')
+        time.sleep(delay)
+        sig = signal.SIGINT if k % 2 else signal.SIGTERM
+        sent = time.monotonic()
+        proc.send_signal(sig)
+        if k == 3:
+            time.sleep(0.05)
+            proc.send_signal(sig)                # a second signal: still a clean exit
+        out, err = proc.communicate(timeout=60)
+        assert proc.returncode == 0, (delay, err)
+        assert 'Traceback' not in err, (delay, err)
+        if log.exists() and log.stat().st_size:
+            with open(log, 'rb') as f:               # finalized: the summary is there
+                assert make_reader(f).get_summary() is not None, delay
+        if delay > 3.0:                          # past start-up: within a second
+            assert time.monotonic() - sent < 1.5, delay

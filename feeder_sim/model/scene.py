@@ -54,6 +54,10 @@ MAX_POLYGON_VERTICES = 1000
 MAX_PIECES = 200
 MAX_FILE_BYTES = 2 * 2 ** 20
 MAX_NESTING = 32
+MIN_MASS_KG, MAX_MASS_KG = 1e-9, 1e6       # a dust grain to a machine base
+MIN_DENSITY, MAX_DENSITY = 1e-6, 1e6       # kg/m^2
+MIN_OUTLINE_M = 1e-6                       # an outline's extent: below it m r^2 underflows
+MIN_PIECE_WIDTH_M = 1e-6                   # thinner convex pieces leave contacts no depth
 # A part may start at most this fraction of its thinner piece inside another body: the
 # contact search looks no deeper (contact.collision.DEPTH_FRACTION).
 MAX_START_OVERLAP = 0.25
@@ -441,6 +445,10 @@ def _vertices(value, path: str) -> np.ndarray:
 
 
 def _orientation(v: np.ndarray, path: str, noun: str) -> None:
+    extent = float(np.max(v.max(axis=0) - v.min(axis=0)))
+    if extent < MIN_OUTLINE_M:
+        raise _Invalid(path, f'{noun} is {extent:.3g} m across; outlines must span at least '
+                             f'{MIN_OUTLINE_M:g} m (coordinates are in metres)')
     ok, reason = geometry.is_simple(v)
     if not ok:
         raise _Invalid(path, f'{noun} is {reason}; {_SIMPLE_HINT}')
@@ -545,9 +553,11 @@ _BODY = {
     'velocity': _Field(lambda v, p: _vec(v, p, 3, '[vx, vy, omega] (m/s, m/s, rad/s)',
                                          (MAX_SPEED_MPS, MAX_SPEED_MPS, MAX_SPIN_RAD_S)),
                        '[vx, vy, omega] (m/s, m/s, rad/s)', np.zeros(3)),
-    'mass': _Field(_num(0.0, lo_open=True, unit='kg'), 'the mass in kg', None),
-    'density': _Field(_num(0.0, lo_open=True, unit='kg/m^2'), 'the areal density in kg/m^2',
-                      None),
+    'mass': _Field(_num(MIN_MASS_KG, MAX_MASS_KG, unit='kg',
+                        hint='outside it inverse masses and mass ratios lose the physics'),
+                   'the mass in kg', None),
+    'density': _Field(_num(MIN_DENSITY, MAX_DENSITY, unit='kg/m^2'),
+                      'the areal density in kg/m^2', None),
     'mu_static': _Field(_num(0.0, MAX_FRICTION), 'a friction coefficient', 0.0),
     'mu_dynamic': _Field(_num(0.0, MAX_FRICTION), 'a friction coefficient', None),
     'restitution': _Field(_num(0.0, 1.0), 'a coefficient of restitution', 0.0),
@@ -576,6 +586,14 @@ def _body(value, path: str) -> BodySpec:
         outlines, convex = (outline,), tuple(geometry.convex_decomposition(outline))
     else:
         outlines, convex = pieces, tuple(geometry.drop_collinear(p) for p in pieces)
+    for k, piece in enumerate(convex):
+        width = geometry.min_width(piece)
+        if width < MIN_PIECE_WIDTH_M:
+            where = (_join(path, 'polygon') if outline is not None
+                     else f"{_join(path, 'polygons')}[{k}]")
+            raise _Invalid(where, f'a convex piece is {width:.3g} m thin (at least '
+                                  f'{MIN_PIECE_WIDTH_M:g} m): contacts cannot resolve it; '
+                                  'straighten nearly collinear vertices or thicken the sliver')
 
     if kind == 'dynamic':
         if f['mass'] is not None and f['density'] is not None:

@@ -20,7 +20,12 @@ def main() -> int:
     if stop.is_set():
         return 0
     from feeder_sim.ros import node as sim_node
-    return sim_node.main(stop=stop)
+    code = sim_node.main(stop=stop)
+    # the log is final: a signal that arrives while the interpreter shuts down (when Python
+    # has put the default handlers back) must not turn a clean exit into a kill
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
+    return code
 
 
 if __name__ == '__main__':

@@ -1,0 +1,212 @@
+"""Fault campaign: malformed and extreme input, floods and signals.
+
+Scene files are made by mutating the shipped scenes (a value replaced by an extreme or
+malformed one, a key removed or misspelt, a structure wrapped); every one must be answered
+within seconds by a run whose outputs are finite, or by one line naming the key. Command
+floods of random content must leave the node running with a valid drive; signals at random
+moments must end it within a second with a readable log.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from pathlib import Path
+import random
+import subprocess
+import sys
+import time
+
+from hypothesis import given, HealthCheck, settings
+from hypothesis import strategies as st
+import numpy as np
+import pytest
+import yaml
+
+from feeder_sim.model.scene import parse_scene, SceneError, shipped_scenes
+from feeder_sim.simulator import Simulator
+
+CONFIG = Path(__file__).resolve().parents[1] / 'config'
+SCENES = {name: yaml.safe_load((CONFIG / f'{name}.yaml').read_text())
+          for name in shipped_scenes()}
+
+NASTY = [None, True, 'text', '', [], {}, [1.0], [[1.0, 2.0]], 0, -1, 0.0, -0.0, 1e-320,
+         5e-324, -1e-320, 1e-12, 1e12, 1e300, -1e300, math.nan, math.inf, -math.inf,
+         2 ** 63, 10 ** 400, '1e3', [math.nan, 0.0], [0.0, 0.0, 1e16]]
+
+
+def _leaves(data, path=()):
+    """Key paths of every value in ``data`` (mappings and lists, depth first)."""
+    yield path
+    if isinstance(data, dict):
+        for key, value in data.items():
+            yield from _leaves(value, (*path, key))
+    elif isinstance(data, list):
+        for k, value in enumerate(data):
+            yield from _leaves(value, (*path, k))
+
+
+def _mutate(data: dict, path: tuple, kind: str, value) -> dict:
+    out = copy.deepcopy(data)
+    if not path:
+        return value if kind == 'replace' else {'scene': out}
+    parent = out
+    for key in path[:-1]:
+        parent = parent[key]
+    last = path[-1]
+    if kind == 'replace':
+        parent[last] = value
+    elif kind == 'delete':
+        if isinstance(parent, dict):
+            del parent[last]
+        else:
+            parent.pop(last)
+    elif kind == 'misspell' and isinstance(parent, dict):
+        parent[f'{last}x'] = parent.pop(last)
+    elif kind == 'scale':
+        parent[last] = _scaled(parent[last], value)
+    elif kind == 'wrap':
+        parent[last] = [parent[last]]
+    elif kind == 'duplicate' and isinstance(parent, list):
+        parent.append(copy.deepcopy(parent[last]))
+    return out
+
+
+SCALES = [1e-9, 1e-3, -1.0, 1e3, 1e9]
+
+
+def _scaled(value, factor: float):
+    """Every number in ``value`` times ``factor`` (extreme but well-formed)."""
+    if isinstance(value, bool) or value is None or isinstance(value, str):
+        return value
+    if isinstance(value, (int, float)):
+        return value * factor
+    if isinstance(value, list):
+        return [_scaled(v, factor) for v in value]
+    if isinstance(value, dict):
+        return {k: _scaled(v, factor) for k, v in value.items()}
+    return value
+
+
+@st.composite
+def mutated_scenes(draw):
+    name = draw(st.sampled_from(sorted(SCENES)))
+    data = SCENES[name]
+    paths = list(_leaves(data))
+    path = draw(st.sampled_from(paths))
+    kind = draw(st.sampled_from(['replace', 'replace', 'replace', 'scale', 'scale', 'delete',
+                                 'misspell', 'wrap', 'duplicate']))
+    value = draw(st.sampled_from(SCALES if kind == 'scale' else NASTY))
+    return name, path, kind, _mutate(data, path, kind, value)
+
+
+def answer(data, duration_s: float = 0.01) -> tuple[str, str]:
+    """('refused', line) or ('ran', summary); asserts the answer is clean."""
+    try:
+        scene = parse_scene(data, source='mutated.yaml')
+    except SceneError as err:
+        line = str(err)
+        assert '\n' not in line and line.startswith('mutated.yaml'), line
+        return 'refused', line
+    try:
+        sim = Simulator(scene)
+        sim.advance_by(duration_s)
+    except ValueError as err:         # a refusal that needs the world (e.g. an override)
+        assert '\n' not in str(err), err
+        return 'refused', str(err)
+    s = sim.state
+    for a in (s.position, s.angle, s.velocity, s.omega):
+        assert np.all(np.isfinite(a)), f'non-finite state after {duration_s} s'
+    report = sim.take_contacts()
+    for a in (report.point, report.normal, report.normal_impulse, report.tangent_impulse):
+        assert np.all(np.isfinite(a)), 'non-finite contact report'
+    assert math.isfinite(sim.mechanical_energy())
+    return 'ran', f'{scene.name} t = {sim.t}'
+
+
+@pytest.mark.timeout(900)
+@settings(max_examples=150, deadline=None, derandomize=True, database=None,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(mutated_scenes())
+def test_a_mutated_shipped_scene_is_run_or_refused_in_one_line(case):
+    name, path, kind, data = case
+    start = time.perf_counter()
+    answer(data)
+    assert time.perf_counter() - start < 30.0, (name, path, kind)
+
+
+# Whole files through the command line, as a user would give them: exit 0 with a run, or
+# exit 2 with one line; never a traceback.
+CLI_CASES = [
+    ('track_one_box', ('bodies', 1, 'mass'), 'replace', 1e-300),
+    ('track_one_box', ('bodies', 1, 'mass'), 'replace', 1e300),
+    ('track_one_box', ('bodies', 0, 'vibration', 'frequency'), 'replace', 5e-324),
+    ('track_one_box', ('gravity',), 'replace', [0.0, -1e300]),
+    ('track_ten_boxes', ('bodies', 3, 'pose'), 'replace', [0.0, 0.0, 1e16]),
+    ('orienter_hook', ('solver', 'time_step'), 'replace', 0.0),
+    ('incline_stick', ('bodies',), 'replace', {}),
+    ('incline_slide', ('bodies', 1, 'polygon'), 'replace', [[0, 0], [1, 1], [0, 0]]),
+]
+
+
+@pytest.mark.timeout(600)
+def test_malformed_files_through_the_cli_are_one_line_or_a_run(tmp_path):
+    for k, (name, path, kind, value) in enumerate(CLI_CASES):
+        scene = tmp_path / f'case_{k}.yaml'
+        scene.write_text(yaml.safe_dump(_mutate(SCENES[name], path, kind, value)))
+        proc = subprocess.run([sys.executable, '-m', 'feeder_sim.cli', '-q', 'run', str(scene),
+                               '--duration', '0.02'], capture_output=True, text=True,
+                              timeout=120)
+        assert 'Traceback' not in proc.stderr, (path, proc.stderr)
+        if proc.returncode == 2:
+            lines = [x for x in proc.stderr.splitlines() if x.strip()]
+            assert len(lines) == 1 and lines[0].startswith('feeder-sim: error:'), proc.stderr
+        else:
+            assert proc.returncode == 0, (path, proc.stderr)
+            assert 'nan' not in proc.stdout.lower(), proc.stdout
+
+
+def test_the_campaign_reaches_both_answers():
+    # the mutations are not all refused (nor all accepted): both paths are exercised
+    rng = random.Random(7)
+    answers = set()
+    for _ in range(40):
+        name = rng.choice(sorted(SCENES))
+        path = rng.choice(list(_leaves(SCENES[name])))
+        answers.add(answer(_mutate(SCENES[name], path, 'replace', rng.choice(NASTY)))[0])
+    assert answers == {'ran', 'refused'}
+
+
+# --- the node under a flood of random commands (real DDS) ---------------------------------
+
+def test_a_flood_of_random_commands_leaves_a_valid_drive(tmp_path):
+    from std_msgs.msg import Float64MultiArray
+    from test_sim_node import Graph
+
+    from feeder_sim.model.vibration import parse_command
+
+    rng = random.Random(11)
+    numbers = [v for v in NASTY if isinstance(v, float)] + [0.0, 3e-4, 50.0, 1e-3, 120.0]
+    graph = Graph()
+    try:
+        node = graph.start(real_time_factor=0.0, record_path=str(tmp_path / 'flood.mcap'))
+        drive = node.sim.world.drives[node.sim.world.driven[0]]
+        valid = {(drive.amplitude_m, drive.frequency_hz)}
+        pub = graph.publisher(Float64MultiArray, 'vibration_cmd')
+        for _ in range(400):
+            data = [rng.choice(numbers) for _ in range(rng.choice([0, 1, 2, 2, 2, 3]))]
+            try:
+                valid.add(parse_command(data))
+            except ValueError:
+                pass
+            pub.publish(Float64MultiArray(data=data))
+            graph.executor.spin_once(timeout_sec=0.0)
+        frames = node.frames
+        graph.spin_for(1.0)
+        assert not node.done and node.frames > frames            # still simulating
+        assert (drive.amplitude_m, drive.frequency_hz) in valid
+        s = node.sim.state
+        assert all(np.all(np.isfinite(a)) for a in (s.position, s.velocity, s.angle, s.omega))
+        assert node.commands_accepted + node.commands_rejected > 0
+    finally:
+        graph.close()
