@@ -308,3 +308,36 @@ def test_signals_at_random_moments_end_the_node_cleanly(workspace, tmp_path, pro
                 assert make_reader(f).get_summary() is not None, delay
         if delay > 3.0:                          # past start-up: within a second
             assert time.monotonic() - sent < 1.5, delay
+
+
+def test_a_signal_ends_a_huge_step_call_within_a_second(workspace, tmp_path, processes):
+    # ~/step with steps_per_call = 1e6 frames: hours of work inside one service callback
+    from std_srvs.srv import Trigger
+    log = tmp_path / 'steps.mcap'
+    proc = start_node(workspace, processes, '-p', f'record_path:={log}',
+                      '-p', 'start_paused:=true', '-p', 'steps_per_call:=1000000',
+                      '-p', 'record_flush_period:=0.1')
+    context = Context()
+    rclpy.init(context=context)
+    try:
+        probe = Node('stepper', context=context)
+        client = probe.create_client(Trigger, '/feeder_sim/step')
+        assert client.wait_for_service(timeout_sec=60.0)
+        client.call_async(Trigger.Request())
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(probe)
+        end = time.monotonic() + 2.0
+        while time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.05)
+        assert proc.poll() is None
+        sent = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=30)
+        elapsed = time.monotonic() - sent
+    finally:
+        rclpy.shutdown(context=context)
+    assert proc.returncode == 0, err
+    assert elapsed < 1.5, f'{elapsed:.2f} s to stop'
+    with open(log, 'rb') as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None and summary.statistics.message_count > 100   # frames stepped
