@@ -246,16 +246,14 @@ class Simulator:
         also set by the environment variable ``FEEDER_SIM_CHECK_ENERGY``."""
         if not isinstance(scene, Scene):
             scene = load_scene(scene)
-        if (method is not None and time_step is None and method != scene.solver.method
-                and method == 'time_stepping'):
-            time_step = fixed_time_step(scene)
-            if time_step < scene.solver.time_step:
+        if time_step is None and method == 'time_stepping' != scene.solver.method:
+            step = fixed_time_step(scene)
+            if step < scene.solver.time_step:
+                time_step = step
                 log.info("%s: %s's step %g s is too coarse for time_stepping; using %g s "
-                         '(%d steps per drive period; --time-step sets another)', scene.name,
-                         scene.solver.method, scene.solver.time_step, time_step,
+                         '(%d steps per drive period; a time step given sets another)',
+                         scene.name, scene.solver.method, scene.solver.time_step, step,
                          STEPS_PER_PERIOD)
-            else:
-                time_step = None
         changes = {k: v for k, v in (('method', method), ('time_step', time_step),
                                      ('tolerance', tolerance),
                                      ('friction_impulse', friction_impulse)) if v is not None}

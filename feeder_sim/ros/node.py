@@ -24,6 +24,7 @@ Services: ``~/reset`` (Trigger), ``~/pause`` (SetBool), ``~/step`` (Trigger, whi
 from __future__ import annotations
 
 from dataclasses import dataclass
+import math
 import os
 import signal
 import sys
@@ -333,7 +334,9 @@ class SimNode(Node):
                 return False
             remaining = span = t_end - sim.t
             if wall_per_s is not None and span * wall_per_s > _SLICE_WALL_S:
-                span = max(_SLICE_WALL_S / wall_per_s, sim.scene.solver.time_step)
+                # whole steps: a time-stepped method's grid is not cut by a slice
+                h = sim.scene.solver.time_step
+                span = max(1, math.floor(_SLICE_WALL_S / wall_per_s / h)) * h
             last = span >= remaining
             t0, wall0 = sim.t, time.perf_counter()
             sim.advance_to(t_end if last else t0 + span)
