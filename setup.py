@@ -23,7 +23,8 @@ setup(
     ],
     python_requires='>=3.11',
     install_requires=['setuptools', 'numpy>=1.26', 'scipy>=1.11', 'numba>=0.60', 'pyyaml>=6',
-                      'matplotlib>=3.8', 'mcap>=1.2', 'mcap-ros2-support>=0.5'],
+                      'matplotlib>=3.8', 'mcap>=1.2', 'mcap-ros2-support>=0.5',
+                      'simpleeval>=1.0'],
     extras_require={
         'ros': ros,
         'replay': replay,

@@ -330,7 +330,7 @@ SQUARE = [[0, 0], [0.01, 0], [0.01, 0.01], [0, 0.01]]
 BAD = [
     # unknown keys, at every level, with a suggestion and the allowed keys
     ('unknown top key', {'gravty': [0, -9.81]}, 'gravty',
-     ["unknown key 'gravty'", "did you mean 'gravity'?", 'allowed keys: name, gravity']),
+     ["unknown key 'gravty'", "did you mean 'gravity'?", 'allowed keys: name, parameters, gravity']),
     ('unknown body key', {'bodies[1].mas': 0.01}, 'bodies[1].mas',
      ["did you mean 'mass'?", 'allowed keys:', 'density']),
     ('unknown solver key', {'solver.time_stp': 1e-3}, 'solver.time_stp',
@@ -682,3 +682,60 @@ def test_the_start_overlap_uses_where_the_drive_puts_a_body_at_t_0():
     with pytest.raises(SceneError, match="'box' and 'plate' overlap"):
         parse_scene(scene(-0.015))
     parse_scene(scene(0.015))
+
+
+# --- named parameters and expressions ------------------------------------------------------
+
+PARAMETRIC = {
+    'parameters': {'half_width': {'default': 0.01, 'unit': 'm', 'min': 0.002, 'max': 0.05},
+                   'mu': 0.5, 'tilt_deg': 5},
+    'bodies': [
+        {'name': 'floor', 'type': 'static', 'pose': [0, 0, 0], 'mu_static': 'mu',
+         'polygon': [[-1, -0.1], [1, -0.1], [1, 0], [-1, 0]]},
+        {'name': 'box', 'type': 'dynamic', 'mass': 0.01, 'mu_static': 'mu',
+         'polygon': [['-half_width', '-half_width / 2'], ['half_width', '-half_width / 2'],
+                     ['half_width', 'half_width / 2'], ['-half_width', 'half_width / 2']],
+         'pose': [0, 'half_width / 2 + 1e-3', 'radians(tilt_deg)']}]}
+
+
+def test_numbers_may_be_expressions_of_named_parameters():
+    scene = parse_scene(PARAMETRIC)
+    assert scene.parameters == {'half_width': 0.01, 'mu': 0.5, 'tilt_deg': 5.0}
+    np.testing.assert_allclose(scene.bodies[1].pose, [0.0, 0.006, math.radians(5)])
+    np.testing.assert_allclose(scene.bodies[1].pieces[0][2], [0.01, 0.005])
+    assert scene.bodies[0].mu_static == 0.5
+    wide = parse_scene(PARAMETRIC, parameters={'half_width': 0.02, 'mu': 0.8})
+    np.testing.assert_allclose(wide.bodies[1].pieces[0][2], [0.02, 0.01])
+    assert wide.bodies[1].mu_static == 0.8 and wide.parameters['tilt_deg'] == 5.0
+    # written back as plain numbers (and the values used), it is the same scene
+    assert parse_scene(scene_to_dict(wide)) == wide
+
+
+@pytest.mark.parametrize('changes, given, path, fragment', [
+    ({}, {'half_width': 0.5}, 'parameters.half_width', 'outside its bounds [0.002, 0.05]'),
+    ({}, {'height': 1.0}, 'parameters', 'no parameter named height; the scene declares'),
+    ({'bodies[1].pose[1]': 'half_width + x'}, {}, 'bodies[1].pose[1]',
+     "'x' is not defined"),
+    ({'bodies[1].pose[1]': '__import__("os").getcwd()'}, {}, 'bodies[1].pose[1]',
+     'cannot evaluate'),
+    ({'bodies[1].pose[1]': '1 / (mu - 0.5)'}, {}, 'bodies[1].pose[1]', 'division by zero'),
+    ({'bodies[1].pose[1]': '9 ** 9 ** 9'}, {}, 'bodies[1].pose[1]', 'cannot evaluate'),
+    ({'bodies[1].mass': "'heavy'"}, {}, 'bodies[1].mass', "gives the text 'heavy'"),
+    ({'parameters': {'sin': 1.0}}, {}, 'parameters.sin', 'taken by a function'),
+    ({'parameters': {'2x': 1.0}}, {}, 'parameters.2x', 'not a name'),
+], ids=['out of bounds', 'unknown', 'undefined name', 'no calls', 'zero division',
+        'huge power', 'text result', 'function name', 'bad name'])
+def test_parameter_and_expression_errors_name_the_key(changes, given, path, fragment):
+    data = copy.deepcopy(PARAMETRIC)
+    for key, value in changes.items():
+        if key == 'parameters':
+            data['parameters'] = value
+            continue
+        body, field_, index = re.match(r'bodies\[(\d)\]\.(\w+)(?:\[(\d)\])?', key).groups()
+        if index is None:
+            data['bodies'][int(body)][field_] = value
+        else:
+            data['bodies'][int(body)][field_][int(index)] = value
+    with pytest.raises(SceneError) as err:
+        parse_scene(data, parameters=given)
+    assert err.value.path == path and fragment in err.value.message, str(err.value)

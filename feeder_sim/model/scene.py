@@ -15,6 +15,7 @@ comments) count as absent. ``track: null`` means "no track body".
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
+from contextvars import ContextVar
 from dataclasses import dataclass, field, fields, replace
 import difflib
 import math
@@ -26,6 +27,7 @@ import sys
 from typing import Any
 
 import numpy as np
+import simpleeval
 import yaml
 
 from feeder_sim.model import geometry
@@ -222,6 +224,8 @@ class Scene(_ArrayFieldsEq):
     track: str | None = None
     source: str = '<dict>'
     outcomes: OutcomeSpec = OutcomeSpec()
+    # the values of the scene's named parameters this scene was built with
+    parameters: Mapping[str, float] = field(default_factory=dict)
 
     def __post_init__(self):
         object.__setattr__(self, 'gravity', _frozen(self.gravity, (2,)))
@@ -278,7 +282,12 @@ def _range_text(lo, hi, lo_open, hi_open) -> str:
 
 def _number(value, path: str, lo: float | None = None, hi: float | None = None, *,
             lo_open: bool = False, hi_open: bool = False, unit: str = '', hint: str = '') -> float:
-    """A finite real number (bool is not a number), optionally within [lo, hi] (or open ends)."""
+    """A finite real number (bool is not a number), optionally within [lo, hi] (or open ends).
+
+    In a scene with ``parameters``, text that is not a number is an expression of them."""
+    names = _PARAMETER_VALUES.get()
+    if names is not None and isinstance(value, str) and not _looks_numeric(value):
+        value = _evaluate(value, path, names)
     expected = 'a number' + (f' ({unit})' if unit else '')
     if lo is not None or hi is not None:
         expected += ' ' + _range_text(lo, hi, lo_open, hi_open)
@@ -301,6 +310,32 @@ def _number(value, path: str, lo: float | None = None, hi: float | None = None, 
         raise _Invalid(path, f'{x:g} is out of range; expected {expected}'
                        + (f'; {hint}' if hint else ''))
     return x
+
+
+# The values of the scene's parameters while its numbers are checked (None: it has none).
+_PARAMETER_VALUES: ContextVar[dict[str, float] | None] = ContextVar('parameters', default=None)
+EXPRESSION_FUNCTIONS = {name: getattr(math, name) for name in (
+    'sin', 'cos', 'tan', 'asin', 'acos', 'atan', 'atan2', 'sqrt', 'exp', 'log', 'hypot',
+    'radians', 'degrees', 'floor', 'ceil')} | {'abs': abs, 'min': min, 'max': max}
+EXPRESSION_CONSTANTS = {'pi': math.pi, 'g': 9.81}
+
+
+def _evaluate(text: str, path: str, values: Mapping[str, float]) -> float:
+    """A number from an expression of the scene's parameters (simpleeval: arithmetic, the
+    functions above, no attribute access, no calls of anything else)."""
+    evaluator = simpleeval.SimpleEval(names={**EXPRESSION_CONSTANTS, **values},
+                                      functions=EXPRESSION_FUNCTIONS)
+    try:
+        result = evaluator.eval(text)
+    except (simpleeval.InvalidExpression, SyntaxError, ArithmeticError, TypeError,
+            ValueError) as err:
+        known = ', '.join(sorted(values)) or 'none'
+        reason = getattr(err, 'message', None) or str(err) or type(err).__name__
+        raise _Invalid(path, f'cannot evaluate {text!r}: {reason}; parameters: {known}; '
+                             'functions: ' + ', '.join(sorted(EXPRESSION_FUNCTIONS))) from None
+    if isinstance(result, bool) or not isinstance(result, Real):
+        raise _Invalid(path, f'{text!r} gives {_describe(result)}, not a number')
+    return float(result)
 
 
 def _looks_numeric(text: str) -> bool:
@@ -692,6 +727,8 @@ def _track_name(value, path: str) -> str | None:
 
 _TOP = {
     'name': _Field(_string, 'a text', _AUTO),
+    # read first, by parse_scene (the numbers of the rest may be expressions of them)
+    'parameters': _Field(lambda v, p: v, 'a mapping of named parameters', None, nullable=True),
     'gravity': _Field(lambda v, p: _vec(v, p, 2, '[gx, gy] (m/s^2)', (MAX_GRAVITY_MPS2,) * 2),
                       '[gx, gy] (m/s^2)',
                       np.array(DEFAULT_GRAVITY)),
@@ -757,6 +794,43 @@ def _default_name(source: str) -> str:
     return 'unnamed' if source.startswith('<') else Path(source).stem
 
 
+_PARAMETER = {
+    'default': _Field(lambda v, p: _number(v, p), 'the default value'),
+    'unit': _Field(_string, 'a unit (text)', ''),
+    'min': _Field(lambda v, p: _number(v, p), 'the smallest value allowed', None),
+    'max': _Field(lambda v, p: _number(v, p), 'the largest value allowed', None),
+    'description': _Field(_string, 'a text', ''),
+}
+_IDENTIFIER = re.compile(r'[A-Za-z_][A-Za-z0-9_]*\Z')
+
+
+def _parameters(value, given: Mapping[str, float]) -> dict[str, float]:
+    """The parameters' values: ``given`` where given, else their defaults, within bounds."""
+    if value is not None and not isinstance(value, Mapping):
+        raise _Invalid('parameters', 'expected a mapping of name: default, or name: {default, '
+                                     f'unit, min, max}}; got {_describe(value)}')
+    specs = value or {}
+    out = {}
+    for name, spec in specs.items():
+        path = f'parameters.{name}'
+        if not isinstance(name, str) or not _IDENTIFIER.match(name):
+            raise _Invalid(path, f'{name!r} is not a name; use letters, digits and _')
+        if name in EXPRESSION_FUNCTIONS or name in EXPRESSION_CONSTANTS:
+            raise _Invalid(path, f'{name!r} is taken by a function or constant of '
+                                 'expressions; choose another name')
+        f = (_fields(spec, path, _PARAMETER) if isinstance(spec, Mapping)
+             else {'default': _number(spec, path), 'min': None, 'max': None})
+        x = _number(given[name], path) if name in given else f['default']
+        if (f['min'] is not None and x < f['min']) or (f['max'] is not None and x > f['max']):
+            raise _Invalid(path, f'{x:g} is outside its bounds [{f["min"]}, {f["max"]}]')
+        out[name] = x
+    unknown = sorted(set(given) - set(out))
+    if unknown:
+        raise _Invalid('parameters', f'no parameter named {", ".join(unknown)}; the scene '
+                                     f'declares: {", ".join(out) or "none"}')
+    return out
+
+
 def override_solver(solver: SolverSpec, changes: Mapping[str, Any],
                     source: str = '<override>') -> SolverSpec:
     """``solver`` with ``changes`` (solver keys) checked as a scene file's would be; raises
@@ -773,9 +847,22 @@ def override_solver(solver: SolverSpec, changes: Mapping[str, Any],
     return replace(solver, **out)
 
 
-def parse_scene(data: Mapping, source: str = '<dict>') -> Scene:
-    """Validate a scene given as plain data (as loaded from YAML); raises SceneError."""
+def parse_scene(data: Mapping, source: str = '<dict>',
+                parameters: Mapping[str, float] | None = None) -> Scene:
+    """Validate a scene given as plain data (as loaded from YAML); raises SceneError.
+
+    A scene may declare ``parameters`` (name: default, or name: {default, unit, min, max});
+    any number in it may then be an expression of them. ``parameters`` here gives values
+    other than the defaults (a study's design)."""
+    token = None
     try:
+        if isinstance(data, Mapping):
+            values = _parameters(data.get('parameters'), parameters or {})
+            data = {k: v for k, v in data.items() if k != 'parameters'}
+            if values:
+                token = _PARAMETER_VALUES.set(values)
+        else:
+            values = {}
         f = _fields(data, '', _TOP)
         bodies = f['bodies']
         track = f['track']
@@ -788,9 +875,13 @@ def parse_scene(data: Mapping, source: str = '<dict>') -> Scene:
         name = _default_name(source) if f['name'] is _AUTO else f['name']
         return Scene(name=name, gravity=f['gravity'], solver=f['solver'], bodies=bodies,
                      track=track, source=source,
-                     outcomes=f['outcomes'] if f['outcomes'] is not None else OutcomeSpec())
+                     outcomes=f['outcomes'] if f['outcomes'] is not None else OutcomeSpec(),
+                     parameters=values)
     except _Invalid as err:
         raise SceneError(err.message, err.path, source) from None
+    finally:
+        if token is not None:
+            _PARAMETER_VALUES.reset(token)
 
 
 # --------------------------------------------------------------------------------------------
@@ -906,8 +997,10 @@ def _check_nesting(data: Any, source: str) -> None:
             stack.extend((child, depth + 1) for child in children)
 
 
-def load_scene(path_or_name: str | os.PathLike) -> Scene:
-    """Load and validate a scene file, given its path or the name of a shipped scene."""
+def load_scene(path_or_name: str | os.PathLike,
+               parameters: Mapping[str, float] | None = None) -> Scene:
+    """Load and validate a scene file, given its path or the name of a shipped scene (and the
+    values of its named parameters where not the defaults)."""
     path = _find(path_or_name)
     source = str(path)
     try:
@@ -946,7 +1039,7 @@ def load_scene(path_or_name: str | os.PathLike) -> Scene:
     if data is None:
         raise SceneError('the file is empty; expected a mapping with at least `bodies`',
                          source=source)
-    return parse_scene(data, source)
+    return parse_scene(data, source, parameters)
 
 
 # --------------------------------------------------------------------------------------------
@@ -988,6 +1081,9 @@ def scene_to_dict(scene: Scene) -> dict:
                    'restitution_law': s.restitution_law},
         'bodies': bodies,
         'outcomes': _outcomes_dict(scene.outcomes),
+        # the values used (every number above is already resolved)
+        **({'parameters': {k: float(v) for k, v in scene.parameters.items()}}
+           if scene.parameters else {}),
     }
 
 
