@@ -330,7 +330,8 @@ SQUARE = [[0, 0], [0.01, 0], [0.01, 0.01], [0, 0.01]]
 BAD = [
     # unknown keys, at every level, with a suggestion and the allowed keys
     ('unknown top key', {'gravty': [0, -9.81]}, 'gravty',
-     ["unknown key 'gravty'", "did you mean 'gravity'?", 'allowed keys: name, parameters, gravity']),
+     ["unknown key 'gravty'", "did you mean 'gravity'?",
+      'allowed keys: name, parameters, gravity']),
     ('unknown body key', {'bodies[1].mas': 0.01}, 'bodies[1].mas',
      ["did you mean 'mass'?", 'allowed keys:', 'density']),
     ('unknown solver key', {'solver.time_stp': 1e-3}, 'solver.time_stp',

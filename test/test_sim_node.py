@@ -569,12 +569,13 @@ def test_reset_while_recording_starts_an_episode_with_monotonic_log_time(graph, 
 
 
 def test_a_second_node_of_the_same_name_refuses_to_run(graph):
+    from feeder_sim.ros.node import _NAMESAKE_WINDOW_S
     first = graph.start(real_time_factor=1.0)
-    graph.spin_for(3.5)                            # past its own start-up check
+    graph.spin_for(_NAMESAKE_WINDOW_S + 0.5)       # past its own start-up check
     g = Graph()
     try:
         second = g.start(real_time_factor=1.0)
-        g.spin_until(lambda: second.done, timeout_s=10.0)
+        g.spin_until(lambda: second.done, timeout_s=2 * _NAMESAKE_WINDOW_S)
         assert second.exit_code == 2
     finally:
         g.close()
@@ -593,9 +594,9 @@ def test_a_node_in_its_own_namespace_runs_but_is_told_of_a_shared_clock(graph):
         warned = []
         second.get_logger().warning = lambda text, **kw: warned.append(text)
         g.executor.add_node(second)
-        g.spin_for(3.5)
+        g.spin_until(lambda: any('another node publishes /clock' in w for w in warned),
+                     timeout_s=10.0)
         assert not second.done
-        assert any('another node publishes /clock' in w for w in warned)
     finally:
         g.close()
     assert not first.done

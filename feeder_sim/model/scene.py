@@ -1001,6 +1001,13 @@ def load_scene(path_or_name: str | os.PathLike,
                parameters: Mapping[str, float] | None = None) -> Scene:
     """Load and validate a scene file, given its path or the name of a shipped scene (and the
     values of its named parameters where not the defaults)."""
+    data, source = read_scene_data(path_or_name)
+    return parse_scene(data, source, parameters)
+
+
+def read_scene_data(path_or_name: str | os.PathLike) -> tuple[Any, str]:
+    """The plain data of a scene file (not yet validated) and its path, for tools that edit a
+    scene before :func:`parse_scene` checks it; raises SceneError for what no reader takes."""
     path = _find(path_or_name)
     source = str(path)
     try:
@@ -1039,7 +1046,7 @@ def load_scene(path_or_name: str | os.PathLike,
     if data is None:
         raise SceneError('the file is empty; expected a mapping with at least `bodies`',
                          source=source)
-    return parse_scene(data, source, parameters)
+    return data, source
 
 
 # --------------------------------------------------------------------------------------------

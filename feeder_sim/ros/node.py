@@ -72,7 +72,8 @@ _NS = 1_000_000_000
 _WALL_BUDGET_S = 0.01
 _WALL_BUDGET_FREE_S = 0.025
 _MAX_LAG_S = 0.25          # wall time behind schedule after which pacing forgets the debt
-_NAMESAKE_WINDOW_S = 3.0   # after start-up, the node looks this long for a namesake
+_NAMESAKE_WINDOW_S = 10.0  # after start-up, the node looks this long for a namesake (DDS
+#                            discovery on a loaded machine takes seconds)
 _SLOW_PERIODS = 3          # diagnostics periods below the requested rate before a warning
 _SLICE_WALL_S = 0.1        # a frame that would take longer runs in slices of about this
 _SLICE_FIRST_STEPS = 20_000  # steps of a time-stepped method tried before any cost is known
@@ -253,6 +254,7 @@ class SimNode(Node):
         self.create_timer(value['diagnostics_period'], self._publish_diagnostics, clock=steady)
         self._started_wall = time.perf_counter()
         self._clock_shared = False
+        self._namesake_since: float | None = None
         self._namesake_timer = self.create_timer(0.2, self._look_for_namesakes, clock=steady)
         self._publish_geometry()
         self._publish_frame(Frame.take(self.sim))
@@ -438,7 +440,10 @@ class SimNode(Node):
             self._namesake_timer.cancel()
             return
         me = (self.get_name(), self.get_namespace())
-        if self.get_node_names_and_namespaces().count(me) > 1:
+        seen = self.get_node_names_and_namespaces().count(me) > 1
+        # seen for a second on end: not a node of a run that just ended, still in the graph
+        self._namesake_since = (self._namesake_since or time.perf_counter()) if seen else None
+        if seen and time.perf_counter() - self._namesake_since >= 1.0:
             name = self.get_fully_qualified_name()
             self.get_logger().error(
                 f'another node named {name} is running; this one stops. Start it in its own '
