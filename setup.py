@@ -8,6 +8,8 @@ package_name = 'feeder_sim'
 ros = ['ros-jazzy-rclpy', 'ros-jazzy-common-interfaces', 'ros-jazzy-rmw-fastrtps-cpp',
        'ros-jazzy-ament-index-python']
 replay = ['rerun-sdk==0.41.0']
+# design studies: trials on Dask, a progress bar, the Parquet table
+study = ['dask[distributed]>=2024.6', 'tqdm>=4.66', 'pyarrow>=15']
 # colcon from PyPI: the packaging test builds this package in a workspace as ROS users do.
 colcon = ['colcon-core', 'colcon-ros', 'colcon-python-setup-py', 'colcon-library-path',
           'colcon-bash', 'ros-jazzy-ament-package']
@@ -20,6 +22,8 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
         (os.path.join('share', package_name, 'config'), glob('config/*.yaml')),
+        (os.path.join('share', package_name, 'config', 'studies'),
+         glob('config/studies/*.yaml')),
     ],
     python_requires='>=3.11',
     install_requires=['setuptools', 'numpy>=1.26', 'scipy>=1.11', 'numba>=0.60', 'pyyaml>=6',
@@ -30,8 +34,10 @@ setup(
         'replay': replay,
         # a peer engine for `feeder-sim accuracy` (same cases, same plot)
         'peers': ['pymunk>=6.6'],
-        'test': ros + replay + colcon + ['pymunk>=6.6', 'pytest>=8', 'pytest-timeout>=2.3',
-                                         'hypothesis>=6.100', 'ruff>=0.6'],
+        'study': study,
+        'test': ros + replay + study + colcon + ['pymunk>=6.6', 'pytest>=8',
+                                                 'pytest-timeout>=2.3', 'hypothesis>=6.100',
+                                                 'ruff>=0.6'],
     },
     zip_safe=True,
     maintainer='feeder_sim maintainers',

@@ -74,6 +74,23 @@ def _paper(args: argparse.Namespace) -> int:
     return 0
 
 
+def _study(args: argparse.Namespace) -> int:
+    from feeder_sim.studies import run_study
+
+    if args.workers is not None and args.workers < 1:
+        raise ValueError(f'--workers must be at least 1, got {args.workers}')
+    summary = run_study(args.study, args.out, scheduler=args.scheduler, workers=args.workers)
+    best = summary['best_design']
+    print(f"{summary['trials']} trials ({summary['failed']} failed) of {len(summary['designs'])} "
+          f"designs in {args.out}")
+    if best is not None:
+        d = summary['designs'][[e['design'] for e in summary['designs']].index(best)]
+        m = d['metrics'][summary['objective']['metric']]
+        print(f"  best design {best}: {d['parameters']}, {summary['objective']['metric']} = "
+              f"{m['mean']:.6g} (95 % interval {m['ci95'][0]:.6g} .. {m['ci95'][1]:.6g})")
+    return 0
+
+
 def _split(text: str | None) -> list[str] | None:
     return [x.strip() for x in text.split(',') if x.strip()] if text else None
 
@@ -177,6 +194,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--methods', metavar='NAMES', help='comma-separated subset of the methods')
     p.add_argument('--list', action='store_true', help='list the scenes and exit')
     p.set_defaults(func=_stability)
+
+    p = sub.add_parser('study', help='a design study: trials on Dask, statistics, plots')
+    p.add_argument('study', help='study file (.yaml)')
+    p.add_argument('--out', required=True, help='output folder; run again to complete it')
+    p.add_argument('--scheduler', metavar='ADDRESS',
+                   help='a Dask scheduler, e.g. tcp://HOST:8786 (default: a local cluster)')
+    p.add_argument('--workers', type=int, metavar='N',
+                   help='local cluster size (default: one process per core)')
+    p.set_defaults(func=_study)
 
     p = sub.add_parser('scenes', help='list the shipped scenes')
     p.set_defaults(func=_scenes)

@@ -1,7 +1,7 @@
 """The package's import contract, read from the source (every import, at any depth of a module).
 
-Layers go one way: model -> contact -> stepping -> simulator -> output -> run -> reports, ros
--> cli. The physics layers import no ROS, MCAP, plotting, replay or distributed-computing
+Layers go one way: model -> contact -> stepping -> simulator -> output -> run -> reports, ros,
+studies -> cli. The physics layers import no ROS, MCAP, plotting, replay or distributed-computing
 package; no stepping method imports another; output/ and ros/ never reach into a stepper; the
 node does not import the CLI's run loop.
 """
@@ -14,7 +14,7 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / 'feeder_sim'
 
 RANK = {'_jit': 0, 'model': 1, 'contact': 2, 'stepping': 3, 'simulator': 4, 'output': 5,
-        'run': 6, 'reports': 7, 'ros': 7, 'cli': 8}
+        'run': 6, 'reports': 7, 'ros': 7, 'studies': 7, 'cli': 8}
 PHYSICS = ('model', 'contact', 'stepping')
 FORBIDDEN_IN_PHYSICS = ('rclpy', 'mcap', 'mcap_ros2', 'matplotlib', 'rerun', 'dask',
                         'distributed', 'pyarrow', 'rosgraph_msgs', 'geometry_msgs',

@@ -1,0 +1,44 @@
+"""Design studies: a scene's designs run as many seeded trials on Dask, with statistics.
+
+>>> summary = run_study('config/studies/track_speed_map.yaml', 'out/speed_map')
+
+:mod:`.spec` reads and checks a study file and makes its designs, :mod:`.trial` runs one
+trial (on a worker), :mod:`.runner` schedules the missing trials and stores each as it
+finishes, :mod:`.summary` writes the table, the per-design statistics and the plots.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+import time
+
+from feeder_sim.studies.runner import ordered, run_trials
+from feeder_sim.studies.spec import load_study, parse_study, StudyError, StudySpec
+from feeder_sim.studies.summary import plot, write_summary, write_table
+
+log = logging.getLogger('feeder_sim')
+
+__all__ = ['StudyError', 'StudySpec', 'load_study', 'parse_study', 'run_study']
+
+
+def run_study(study: str | os.PathLike | StudySpec, out: str | os.PathLike, *,
+              scheduler: str | None = None, workers: int | None = None,
+              plots: bool = True) -> dict:
+    """Run (or complete) a study into ``out``; returns what ``study.json`` holds."""
+    spec = study if isinstance(study, StudySpec) else load_study(study)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    rows = run_trials(spec, out, scheduler=scheduler, workers=workers)
+    wall = time.perf_counter() - start
+    table = list(ordered(spec, rows))
+    write_table(spec, table, out)
+    summary = write_summary(spec, table, out, wall, workers or 0)
+    if plots:
+        summary['plots'] = [str(p) for p in plot(spec, summary, table, out)]
+    failed = summary['failed']
+    log.info('study: %d trials (%d failed) in %s: results.csv, results.parquet, study.json%s',
+             len(table), failed, out, ', plots' if plots else '')
+    return summary

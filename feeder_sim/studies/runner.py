@@ -1,0 +1,134 @@
+"""Running a study's trials on Dask, storing each as it finishes, resuming what is missing.
+
+Each trial's row is written to ``DIR/trials/<key>.json`` (atomically) the moment it comes
+back, so a study stopped by Ctrl-C, a kill or a crash loses only the trials running then;
+the same command computes only the trials without a file. The key is the design's values
+and the repeat; a trial's seed derives from them, so 1 or N workers give the same rows.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+import json
+import logging
+import os
+from pathlib import Path
+import tempfile
+from typing import Any
+
+from feeder_sim.studies.spec import StudySpec
+from feeder_sim.studies.trial import run_trial
+
+log = logging.getLogger('feeder_sim')
+
+
+def trial_key(spec: StudySpec, design: dict[str, float], repeat: int) -> str:
+    return f'{spec.trial_seed(design, repeat):016x}'
+
+
+def all_trials(spec: StudySpec) -> list[tuple[str, dict[str, float], int]]:
+    """(key, design, repeat) of every trial, designs in order, repeats within each."""
+    return [(trial_key(spec, d, r), d, r) for d in spec.designs() for r in range(spec.repeats)]
+
+
+def _write_json(path: Path, data: Any) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix='.', suffix='.tmp')
+    with os.fdopen(fd, 'w') as f:
+        json.dump(data, f, default=float)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def stored(out: Path) -> dict[str, dict]:
+    """The trials already in ``out``, by key (unreadable files are computed again)."""
+    rows = {}
+    for path in sorted((out / 'trials').glob('*.json')):
+        try:
+            rows[path.stem] = json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue
+    return rows
+
+
+def _trial_task(spec: StudySpec, design: dict, repeat: int, record_dir: str | None) -> dict:
+    """What a worker runs: the trial, with its MCAP log when the study keeps logs."""
+    record = None
+    if record_dir is not None:
+        record = str(Path(record_dir) / f'{trial_key(spec, design, repeat)}.mcap')
+    row = run_trial(spec, design, repeat, record)
+    if record is not None:
+        keep = spec.record == 'all' or (spec.record == 'jammed' and row.get('jams_at'))
+        if not keep and os.path.exists(record):
+            os.remove(record)
+        row['log'] = record if keep else ''
+    return row
+
+
+def make_client(scheduler: str | None, workers: int | None):
+    """A Dask client: on the scheduler at ``scheduler``, or on a LocalCluster of ``workers``
+    single-threaded processes (default: one per core). The physics holds the GIL, so a trial
+    needs a process of its own."""
+    from dask.distributed import Client, LocalCluster
+    # the cluster's own chatter (workers starting, connections) is not the study's progress
+    logging.getLogger('distributed').setLevel(logging.WARNING)
+    if scheduler:
+        return Client(scheduler, timeout='30s'), None
+    n = workers or os.cpu_count() or 1
+    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                           dashboard_address=':0', silence_logs=logging.ERROR)
+    return Client(cluster), cluster
+
+
+def run_trials(spec: StudySpec, out: Path, *, scheduler: str | None = None,
+               workers: int | None = None,
+               on_row: Callable[[dict], None] | None = None) -> dict[str, dict]:
+    """Compute the trials missing from ``out`` on Dask; returns every row by key."""
+    from dask.distributed import as_completed
+    from tqdm import tqdm
+
+    (out / 'trials').mkdir(parents=True, exist_ok=True)
+    rows = stored(out)
+    todo = [(k, d, r) for k, d, r in all_trials(spec) if k not in rows]
+    total = len(rows) + len(todo)
+    if not todo:
+        log.info('study: all %d trials already in %s', total, out)
+        return rows
+    record_dir = None
+    if spec.record != 'none':
+        record_dir = str((out / 'logs').resolve())
+        os.makedirs(record_dir, exist_ok=True)
+    client, cluster = make_client(scheduler, workers)
+    try:
+        log.info('study: %d trials to run (%d stored) on %d Dask workers (%s)', len(todo),
+                 len(rows), len(client.scheduler_info()['workers']), client.scheduler.address)
+        futures = {client.submit(_trial_task, spec, d, r, record_dir, key=f'trial-{k}',
+                                 pure=False): k for k, d, r in todo}
+        with tqdm(total=total, initial=len(rows), unit='trial', desc='study',
+                  dynamic_ncols=True, mininterval=0.5) as bar:
+            for future in as_completed(futures):
+                key = futures[future]
+                try:
+                    row = future.result()
+                except Exception as err:    # the worker died: recorded like a failed trial
+                    row = {'status': 'error', 'error': f'{type(err).__name__}: {err}'}
+                row['key'] = key
+                _write_json(out / 'trials' / f'{key}.json', row)
+                rows[key] = row
+                bar.update(1)
+                if on_row is not None:
+                    on_row(row)
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    return rows
+
+
+def ordered(spec: StudySpec, rows: dict[str, dict]) -> Iterator[dict]:
+    """The rows in the study's order (designs, then repeats), with their design index."""
+    for index, (key, design, repeat) in enumerate(all_trials(spec)):
+        if key in rows:
+            yield {'design': index // spec.repeats, **design, 'repeat': repeat,
+                   **{k: v for k, v in rows[key].items() if k not in design}}
+

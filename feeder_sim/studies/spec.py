@@ -1,0 +1,355 @@
+"""A design study as written in a study file: the scene, what varies, the trials, the metrics.
+
+    scene: track_one_box                 # a shipped scene or a path (relative to this file)
+    duration: 2.0                        # simulated s per trial
+    repeats: 3                           # trials per design, each with its own seed
+    seed: 1                              # the study's; trial seeds derive from it
+    parameters:                          # a scene parameter name or a key path
+      bodies[track].vibration.amplitude: [2.0e-4, 3.0e-4]          # values
+      bodies[track].vibration.frequency: {range: [40.0, 60.0], count: 3}
+      hook_height: {sample: lhs, low: 0.002, high: 0.006, count: 8}
+    perturb: {position_m: 1.0e-4, angle_rad: 0.01, drive_phase: true}
+    metrics: [conveying_speed_mps, parts_fed, fraction:open_end_up]
+    objective: {metric: conveying_speed_mps, goal: max}     # ranks designs (default: first)
+    record: none                         # per-trial MCAP logs: none | all | jammed
+
+Value lists and ranges form a grid; sampled parameters (``random`` or ``lhs``, Latin
+hypercube) are drawn together, ``count`` points seeded by ``seed``, and combined with the
+grid. A trial's seed sets what ``perturb`` varies: each part's initial position and angle
+(uniform within the given bounds) and each drive's phase, standing for the randomized
+arrival of parts.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+import copy
+from dataclasses import dataclass, field
+import hashlib
+import itertools
+import json
+import math
+from pathlib import Path
+import re
+from typing import Any
+
+import numpy as np
+import yaml
+
+from feeder_sim.model.scene import METHODS, parse_scene, read_scene_data, Scene, SceneError
+
+MAX_TRIALS = 100_000
+METRICS = {
+    'conveying_speed_mps': 'mean speed of the parts along the track over the run, m/s',
+    'final_position_m': "mean of the parts' final position along the track, m",
+    'parts_fed': 'parts that passed the exit (outcomes.exit_position)',
+    'feed_rate_per_min': 'parts fed per minute of simulated time',
+    'jams': 'parts found jammed',
+    'jammed': '1 when any part jammed, else 0 (a proportion over trials)',
+    'fraction:<orientation>': 'share of the fed parts that left in that named orientation '
+                              '(a proportion)',
+    'rest:<orientation>': 'share of the parts lying in that named orientation at the end (a '
+                          'proportion; a drop test)',
+}
+
+
+class StudyError(ValueError):
+    """An invalid study file: the key path and what is expected, in one line."""
+
+    def __init__(self, message: str, path: str = '', source: str = '<study>'):
+        self.message, self.path, self.source = message, path, source
+        super().__init__(': '.join(p for p in (source, path, message) if p))
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One varied parameter: a scene parameter name or a key path, and its values."""
+
+    name: str
+    values: tuple[float, ...] = ()           # a grid axis
+    sample: str | None = None                # 'random' | 'lhs': drawn jointly, see StudySpec
+    low: float = 0.0
+    high: float = 0.0
+    count: int = 0
+
+
+@dataclass(frozen=True)
+class StudySpec:
+    scene: str
+    duration_s: float
+    repeats: int
+    seed: int
+    parameters: tuple[Parameter, ...]
+    metrics: tuple[str, ...]
+    perturb: Mapping[str, float] = field(default_factory=dict)
+    publish_rate_hz: float = 100.0
+    method: str | None = None
+    record: str = 'none'                     # per-trial MCAP logs: none | all | jammed
+    objective: str = ''                      # the metric that ranks designs (default: first)
+    goal: str = 'max'                        # max | min
+    source: str = '<study>'
+
+    def designs(self) -> list[dict[str, float]]:
+        """Every design, in a fixed order: the grid of value lists, times the sample."""
+        grid = [p for p in self.parameters if p.sample is None]
+        sampled = [p for p in self.parameters if p.sample is not None]
+        points = [dict(zip([p.name for p in grid], combo, strict=True))
+                  for combo in itertools.product(*[p.values for p in grid])]
+        if not sampled:
+            return points
+        rng = np.random.default_rng(self.seed)
+        n = sampled[0].count
+        if sampled[0].sample == 'lhs':
+            # one value per stratum of each axis, strata paired at random
+            unit = (np.stack([rng.permutation(n) for _ in sampled], 1)
+                    + rng.random((n, len(sampled)))) / n
+        else:
+            unit = rng.random((n, len(sampled)))
+        draws = [{p.name: float(p.low + u * (p.high - p.low)) for p, u in zip(sampled, row,
+                                                                             strict=True)}
+                 for row in unit]
+        return [{**g, **d} for g in points for d in draws]
+
+    def trial_seed(self, design: Mapping[str, float], repeat: int) -> int:
+        """A seed of the design's values and the repeat: the same trial gets the same seed
+        whoever runs it and in whatever order."""
+        text = json.dumps([self.seed, sorted(design.items()), repeat])
+        return int.from_bytes(hashlib.sha256(text.encode()).digest()[:8], 'little') >> 1
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and \
+        math.isfinite(value)
+
+
+def _number(value: Any, path: str, source: str, *, positive: bool = False) -> float:
+    if not _is_number(value) or (positive and value <= 0):
+        raise StudyError(f'expected a {"positive " if positive else ""}finite number, got '
+                         f'{value!r}', path, source)
+    return float(value)
+
+
+def _parameter(name: str, value: Any, path: str, source: str) -> Parameter:
+    if isinstance(value, list):
+        if not value:
+            raise StudyError('expected a non-empty list of values', path, source)
+        return Parameter(name, tuple(_number(v, f'{path}[{k}]', source)
+                                     for k, v in enumerate(value)))
+    if not isinstance(value, Mapping):
+        raise StudyError('expected a list of values, {range: [lo, hi], count: n} or '
+                         '{sample: random|lhs, low: lo, high: hi, count: n}', path, source)
+    count = value.get('count')
+    if not isinstance(count, int) or isinstance(count, bool) or not 1 <= count <= MAX_TRIALS:
+        raise StudyError(f'count must be a whole number from 1 to {MAX_TRIALS}, got {count!r}',
+                         f'{path}.count', source)
+    if 'range' in value:
+        extra = set(value) - {'range', 'count'}
+        bounds = value['range']
+        if extra or not (isinstance(bounds, list) and len(bounds) == 2):
+            raise StudyError('a range is {range: [lo, hi], count: n}', path, source)
+        lo, hi = (_number(b, f'{path}.range[{k}]', source) for k, b in enumerate(bounds))
+        return Parameter(name, tuple(np.linspace(lo, hi, count).tolist()))
+    if 'sample' in value:
+        if value['sample'] not in ('random', 'lhs') or set(value) - {'sample', 'low', 'high',
+                                                                   'count'}:
+            raise StudyError('a sample is {sample: random|lhs, low: lo, high: hi, count: n}',
+                             path, source)
+        return Parameter(name, sample=value['sample'], count=count,
+                         low=_number(value.get('low'), f'{path}.low', source),
+                         high=_number(value.get('high'), f'{path}.high', source))
+    raise StudyError('expected a list of values, {range: ...} or {sample: ...}', path, source)
+
+
+_SEGMENT = re.compile(r'([A-Za-z_]\w*)((?:\[[^\]]+\])*)')
+
+
+def set_path(data: dict, path: str, value: float) -> None:
+    """Set the key path ``path`` (as the validator prints them: ``solver.time_step``,
+    ``bodies[2].pose[1]``, bodies also by name: ``bodies[track].vibration.amplitude``) in
+    scene data. Raises KeyError saying which part of the path is missing."""
+    node: Any = data
+    steps: list = []
+    for segment in path.split('.'):
+        m = _SEGMENT.fullmatch(segment)
+        if not m:
+            raise KeyError(f'{segment!r} is not a key or key[index]')
+        steps.append(m.group(1))
+        steps += re.findall(r'\[([^\]]+)\]', m.group(2))
+    for k, step in enumerate(steps):
+        last = k == len(steps) - 1
+        if isinstance(node, list):
+            if re.fullmatch(r'\d+', step):
+                index = int(step)
+            else:
+                names = [b.get('name') if isinstance(b, Mapping) else None for b in node]
+                if step not in names:
+                    listed = ', '.join(map(str, names))
+                    raise KeyError(f'no body named {step!r} (bodies: {listed})')
+                index = names.index(step)
+            if index >= len(node):
+                raise KeyError(f'index {index} is past the end of a list of {len(node)}')
+            if last:
+                node[index] = value
+            else:
+                node = node[index]
+        elif isinstance(node, dict):
+            if last:
+                node[step] = value
+            elif step not in node or node[step] is None:
+                raise KeyError(f'the scene has no {step!r} here')
+            else:
+                node = node[step]
+        else:
+            raise KeyError(f'{step!r} is below a value, not a mapping or list')
+
+
+def scene_for(spec: StudySpec, base: dict, design: Mapping[str, float]) -> tuple[dict, dict]:
+    """The scene data of a design and its scene-parameter values (StudyError for a key path
+    the scene does not have)."""
+    data = copy.deepcopy(base)
+    declared = set(base.get('parameters') or {}) if isinstance(base, Mapping) else set()
+    values = {}
+    for name, value in design.items():
+        if name in declared:
+            values[name] = value
+            continue
+        try:
+            if '.' not in name and '[' not in name:
+                raise KeyError(f'the scene declares no parameter {name!r}')
+            set_path(data, name, value)
+        except KeyError as err:
+            raise StudyError(f'{err.args[0]}; a parameter is one the scene declares '
+                             f'({", ".join(sorted(declared)) or "none"}) or a key path such as '
+                             'bodies[track].vibration.amplitude', f'parameters.{name}',
+                             spec.source) from None
+    return data, values
+
+
+def _resolve_scene(scene: str, study_path: Path | None) -> str:
+    if study_path is not None:
+        candidate = (study_path.parent / scene)
+        if candidate.is_file():
+            return str(candidate)
+    return scene
+
+
+def parse_study(data: Any, source: str = '<study>', study_path: Path | None = None
+                ) -> StudySpec:
+    """Validate a study given as plain data; every design's scene is checked too."""
+    allowed = {'scene', 'duration', 'repeats', 'seed', 'parameters', 'metrics', 'perturb',
+               'publish_rate', 'method', 'record', 'objective'}
+    if not isinstance(data, Mapping):
+        raise StudyError(f'expected a mapping with the keys {", ".join(sorted(allowed))}',
+                         '', source)
+    for key in data:
+        if key not in allowed:
+            raise StudyError(f'unknown key {key!r}; allowed keys: {", ".join(sorted(allowed))}',
+                             str(key), source)
+    for key in ('scene', 'duration', 'parameters', 'metrics'):
+        if key not in data:
+            raise StudyError(f'missing required key {key!r}', key, source)
+    if not isinstance(data['scene'], str) or not data['scene'].strip():
+        raise StudyError('expected a shipped scene name or a path', 'scene', source)
+    scene = _resolve_scene(data['scene'], study_path)
+    duration = _number(data['duration'], 'duration', source, positive=True)
+    repeats = data.get('repeats', 1)
+    if not isinstance(repeats, int) or isinstance(repeats, bool) or not 1 <= repeats <= 10_000:
+        raise StudyError(f'expected a whole number from 1 to 10000, got {repeats!r}', 'repeats',
+                         source)
+    seed = data.get('seed', 0)
+    if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
+        raise StudyError(f'expected a whole number >= 0, got {seed!r}', 'seed', source)
+    if not isinstance(data['parameters'], Mapping) or not data['parameters']:
+        raise StudyError('expected a mapping from parameter (a scene parameter or a key path) '
+                         'to its values', 'parameters', source)
+    parameters = tuple(_parameter(str(name), value, f'parameters.{name}', source)
+                       for name, value in data['parameters'].items())
+    sampled = [p for p in parameters if p.sample is not None]
+    if len({(p.sample, p.count) for p in sampled}) > 1:
+        raise StudyError('sampled parameters are drawn together: give them the same sample '
+                         'and count', 'parameters', source)
+    metrics = data['metrics']
+    if not isinstance(metrics, list) or not metrics:
+        raise StudyError('expected a non-empty list of metric names', 'metrics', source)
+    for k, m in enumerate(metrics):
+        known = isinstance(m, str) and (
+            m in METRICS and '<' not in m
+            or any(m.startswith(p) and len(m) > len(p) for p in ('fraction:', 'rest:')))
+        if not known:
+            raise StudyError(f'unknown metric {m!r}; known: {", ".join(METRICS)}',
+                             f'metrics[{k}]', source)
+    perturb = data.get('perturb') or {}
+    if not isinstance(perturb, Mapping) or set(perturb) - {'position_m', 'angle_rad',
+                                                          'drive_phase'}:
+        raise StudyError('expected {position_m: m, angle_rad: rad, drive_phase: true|false}',
+                         'perturb', source)
+    perturb = {k: (float(bool(v)) if k == 'drive_phase'
+                   else _number(v, f'perturb.{k}', source)) for k, v in perturb.items()}
+    record = data.get('record', 'none')
+    if record not in ('none', 'all', 'jammed'):
+        raise StudyError(f"expected none, all or jammed, got {record!r}", 'record', source)
+    rate = _number(data.get('publish_rate', 100.0), 'publish_rate', source, positive=True)
+    objective = data.get('objective') or {'metric': metrics[0], 'goal': 'max'}
+    if not (isinstance(objective, Mapping) and objective.get('metric') in metrics
+            and objective.get('goal', 'max') in ('max', 'min')):
+        raise StudyError('expected {metric: one of the metrics, goal: max|min}', 'objective',
+                         source)
+    if data.get('method') is not None and data['method'] not in METHODS:
+        raise StudyError(f'expected one of {", ".join(METHODS)}', 'method', source)
+    spec = StudySpec(scene=scene, duration_s=duration, repeats=repeats, seed=seed,
+                     parameters=parameters, metrics=tuple(metrics), perturb=perturb,
+                     publish_rate_hz=rate, method=data.get('method'), record=record,
+                     objective=objective['metric'], goal=objective.get('goal', 'max'),
+                     source=source)
+    n = len(spec.designs()) * repeats
+    if n > MAX_TRIALS:
+        raise StudyError(f'{n} trials; a study may have at most {MAX_TRIALS}', 'parameters',
+                         source)
+    check_designs(spec)
+    return spec
+
+
+def base_scene(spec: StudySpec) -> tuple[dict, str]:
+    data, source = read_scene_data(spec.scene)
+    return data, source
+
+
+def check_designs(spec: StudySpec) -> None:
+    """Each value of each parameter must give a valid scene (the others at the first
+    design's values); errors name the study parameter and the value."""
+    try:
+        base, source = base_scene(spec)
+    except SceneError as err:
+        raise StudyError(str(err), 'scene', spec.source) from None
+    designs = spec.designs()
+    first = designs[0]
+    seen: set = set()
+    for design in designs:
+        for name, value in design.items():
+            if (name, value) in seen:
+                continue
+            seen.add((name, value))
+            data, values = scene_for(spec, base, {**first, name: value})
+            try:
+                parse_scene(data, source, values)
+            except SceneError as err:
+                raise StudyError(f'{value:g} gives an invalid scene: {err.path or ""} '
+                                 f'{err.message}'.replace('  ', ' '), f'parameters.{name}',
+                                 spec.source) from None
+
+
+def scene_of_design(spec: StudySpec, design: Mapping[str, float]) -> Scene:
+    base, source = base_scene(spec)
+    data, values = scene_for(spec, base, design)
+    return parse_scene(data, source, values)
+
+
+def load_study(path: str | Path) -> StudySpec:
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text(encoding='utf-8'))
+    except OSError as err:
+        raise StudyError(f'cannot read the file: {err.strerror}', '', str(path)) from None
+    except yaml.YAMLError as err:
+        raise StudyError(f'YAML error: {str(err).splitlines()[0]}', '', str(path)) from None
+    return parse_study(data, str(path), path)

@@ -1,0 +1,239 @@
+"""Design studies on a real Dask cluster: the study file, designs and seeds, the numbers a
+trial gives, the statistics, resuming, 1 and 2 workers, a scheduler and a worker started as
+their own processes."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from scipy import stats
+import yaml
+
+from feeder_sim.run import run
+from feeder_sim.simulator import Simulator
+from feeder_sim.studies import parse_study, run_study, StudyError
+from feeder_sim.studies.runner import all_trials, run_trials, stored
+from feeder_sim.studies.spec import scene_of_design, set_path
+from feeder_sim.studies.summary import t_interval, wilson
+
+pytestmark = pytest.mark.timeout(300)
+
+SMALL = {
+    'scene': 'track_one_box', 'duration': 0.2, 'repeats': 2, 'seed': 3,
+    'parameters': {'bodies[track].vibration.amplitude': [2.0e-4, 4.0e-4],
+                   'bodies[track].vibration.frequency': {'range': [40.0, 50.0], 'count': 2}},
+    'perturb': {'drive_phase': True, 'position_m': 1e-4},
+    'metrics': ['conveying_speed_mps', 'final_position_m'],
+}
+
+
+def study_file(tmp_path: Path, data: dict, name: str = 'study.yaml') -> Path:
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def table(out: Path) -> list[list[str]]:
+    """results.csv without the columns that depend on the machine (wall time)."""
+    lines = [row.split(',') for row in (out / 'results.csv').read_text().splitlines()]
+    keep = [i for i, c in enumerate(lines[0]) if c != 'wall_s']
+    return [[r[i] for i in keep] for r in lines]
+
+
+# --- the study file ------------------------------------------------------------------------
+
+@pytest.mark.parametrize('change, path, fragment', [
+    ({'sceen': 'x'}, 'sceen', "unknown key 'sceen'"),
+    ({'duration': -1}, 'duration', 'positive finite number'),
+    ({'metrics': ['speed']}, 'metrics[0]', "unknown metric 'speed'"),
+    ({'parameters': {'bodies[trak].vibration.amplitude': [1e-4]}},
+     'parameters.bodies[trak].vibration.amplitude', "no body named 'trak'"),
+    ({'parameters': {'bodies[track].vibration.amplitude': [0.5]}},
+     'parameters.bodies[track].vibration.amplitude', 'invalid scene'),
+    ({'parameters': {'hook_height': [0.01]}}, 'parameters.hook_height',
+     'a parameter is one the scene declares (none) or a key path'),
+    ({'parameters': {'solver.time_step': {'range': [1e-3], 'count': 2}}},
+     'parameters.solver.time_step', 'a range is {range: [lo, hi], count: n}'),
+    ({'repeats': 0}, 'repeats', 'whole number from 1'),
+    ({'objective': {'metric': 'jams'}}, 'objective', 'one of the metrics'),
+], ids=['unknown key', 'duration', 'metric', 'body name', 'value', 'not a parameter',
+        'range', 'repeats', 'objective'])
+def test_a_bad_study_file_is_one_line_naming_the_key(change, path, fragment):
+    with pytest.raises(StudyError) as err:
+        parse_study({**SMALL, **change}, 'study.yaml')
+    assert err.value.path == path and fragment in err.value.message, str(err.value)
+    assert '\n' not in str(err.value)
+
+
+def test_designs_grid_and_latin_hypercube():
+    spec = parse_study(SMALL)
+    designs = spec.designs()
+    assert len(designs) == 4 and len(all_trials(spec)) == 8
+    assert {d['bodies[track].vibration.frequency'] for d in designs} == {40.0, 50.0}
+    lhs = parse_study({**SMALL, 'parameters': {
+        'bodies[track].vibration.amplitude': {'sample': 'lhs', 'low': 1e-4, 'high': 5e-4,
+                                              'count': 8},
+        'bodies[track].vibration.frequency': {'sample': 'lhs', 'low': 30.0, 'high': 70.0,
+                                              'count': 8}}})
+    points = lhs.designs()
+    assert len(points) == 8 and points == lhs.designs()             # seeded
+    for name, lo, hi in (('bodies[track].vibration.amplitude', 1e-4, 5e-4),
+                         ('bodies[track].vibration.frequency', 30.0, 70.0)):
+        strata = sorted(int((d[name] - lo) / (hi - lo) * 8) for d in points)
+        assert strata == list(range(8))                           # one point per stratum
+    # a trial's seed depends on its design and repeat only
+    assert spec.trial_seed(designs[1], 1) == parse_study(SMALL).trial_seed(designs[1], 1)
+    assert spec.trial_seed(designs[1], 0) != spec.trial_seed(designs[1], 1)
+
+
+def test_key_paths_address_bodies_by_name_or_index():
+    data = {'solver': {'time_step': 1e-3}, 'bodies': [{'name': 'track', 'pose': [0, 0, 0]},
+                                                      {'name': 'box', 'pose': [0, 0, 0]}]}
+    set_path(data, 'bodies[box].pose[1]', 0.5)
+    set_path(data, 'bodies[0].pose[2]', 0.1)
+    set_path(data, 'solver.time_step', 2e-4)
+    assert data['bodies'][1]['pose'] == [0, 0.5, 0] and data['bodies'][0]['pose'][2] == 0.1
+    assert data['solver']['time_step'] == 2e-4
+    with pytest.raises(KeyError, match='past the end'):
+        set_path(data, 'bodies[5].pose', 1.0)
+
+
+# --- statistics ----------------------------------------------------------------------------
+
+def test_intervals_against_their_definitions():
+    # Wilson: 5 of 10 -> (0.2366, 0.7634); 0 of 20 -> (0, 0.1611)
+    assert wilson(5, 10) == pytest.approx((0.23659, 0.76341), abs=1e-5)
+    assert wilson(0, 20) == pytest.approx((0.0, 0.16113), abs=1e-5)
+    values = np.array([1.0, 2.0, 4.0, 7.0])
+    lo, hi = t_interval(values)
+    half = stats.t.ppf(0.975, 3) * np.std(values, ddof=1) / 2.0
+    assert (lo, hi) == pytest.approx((3.5 - half, 3.5 + half))
+    assert all(math.isnan(x) for x in t_interval(np.array([1.0])))
+
+
+# --- trials on a cluster -------------------------------------------------------------------
+
+def test_a_trial_is_the_run_of_its_scene(tmp_path):
+    # without perturbation, a trial's metric is what a plain run of the design's scene gives
+    spec = parse_study({**SMALL, 'perturb': {}, 'repeats': 1})
+    summary = run_study(spec, tmp_path / 'out', workers=1, plots=False)
+    design = spec.designs()[3]
+    sim = Simulator(scene_of_design(spec, design))
+    result = run(sim, 0.2, publish_rate_hz=100.0)
+    expected = result.summary['parts'][0]['mean_velocity_along_track_mps']
+    got = summary['designs'][3]['metrics']['conveying_speed_mps']['mean']
+    assert got == expected                                        # bit for bit
+    assert summary['designs'][3]['parameters'] == design
+
+
+def test_one_and_two_workers_give_the_same_table_and_a_rerun_computes_nothing(tmp_path):
+    spec = parse_study(SMALL, 'small.yaml')
+    one = run_study(spec, tmp_path / 'one', workers=1)
+    two = run_study(spec, tmp_path / 'two', workers=2)
+    assert table(tmp_path / 'one') == table(tmp_path / 'two')
+    assert one['trials'] == two['trials'] == 8 and one['failed'] == 0
+    for name in ('results.csv', 'results.parquet', 'study.json',
+                 'conveying_speed_mps.png', 'final_position_m.png'):
+        assert (tmp_path / 'two' / name).stat().st_size > 0, name
+    import pyarrow.parquet as pq
+    frame = pq.read_table(tmp_path / 'two' / 'results.parquet').to_pylist()
+    assert [r['conveying_speed_mps'] for r in frame] == \
+        [float(r[5]) for r in table(tmp_path / 'two')[1:]]
+    # the repeats differ (their seeds perturb the start), the statistics cover them
+    d0 = two['designs'][0]['metrics']['conveying_speed_mps']
+    lo, hi = d0['ci95']
+    assert d0['n'] == 2 and lo < d0['mean'] < hi
+    computed = []
+    run_trials(spec, tmp_path / 'two', workers=1, on_row=computed.append)
+    assert computed == []
+
+
+def test_a_study_resumes_what_is_missing(tmp_path):
+    spec = parse_study(SMALL, 'small.yaml')
+    out = tmp_path / 'resumed'
+    run_study(spec, out, workers=2, plots=False)
+    full = table(out)
+    files = sorted((out / 'trials').glob('*.json'))
+    for path in files[::2]:
+        path.unlink()                                    # as if stopped midway
+    (files[1]).write_text('{"truncated')                 # and one written half
+    computed = []
+    run_trials(spec, out, workers=2, on_row=computed.append)
+    assert len(computed) == len(files[::2]) + 1
+    run_study(spec, out, workers=2, plots=False)
+    assert table(out) == full
+
+
+def test_a_failing_trial_is_recorded_and_the_study_goes_on(tmp_path):
+    # the track scene names no orientations: that metric fails every trial, with its reason
+    spec = parse_study({**SMALL, 'repeats': 1, 'metrics': ['conveying_speed_mps',
+                                                           'fraction:open_end_up']})
+    summary = run_study(spec, tmp_path / 'out', workers=2, plots=False)
+    assert summary['failed'] == summary['trials'] == 4
+    rows = [json.loads(p.read_text()) for p in (tmp_path / 'out' / 'trials').glob('*.json')]
+    assert all(r['status'] == 'error' and 'names no orientation' in r['error'] for r in rows)
+
+
+def test_a_study_killed_midway_resumes_without_recomputing(tmp_path):
+    study = study_file(tmp_path, {**SMALL, 'duration': 1.0, 'repeats': 3})
+    out = tmp_path / 'killed'
+    cmd = [sys.executable, '-m', 'feeder_sim.cli', 'study', str(study), '--out', str(out),
+           '--workers', '1']
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            start_new_session=True)
+    end = time.monotonic() + 120
+    while len(list((out / 'trials').glob('*.json'))) < 3:
+        assert proc.poll() is None and time.monotonic() < end, proc.communicate()
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=30)
+    done = stored(out)
+    assert 3 <= len(done) < 12
+    spec = parse_study({**SMALL, 'duration': 1.0, 'repeats': 3})
+    computed = []
+    run_trials(spec, out, workers=2, on_row=computed.append)
+    assert len(computed) == 12 - len(done)
+    assert not {r['key'] for r in computed} & set(done)
+
+
+def test_a_scheduler_and_a_worker_started_as_processes(tmp_path):
+    scheduler_file = tmp_path / 'scheduler.json'
+    dask = [sys.executable, '-m', 'distributed.cli']
+    procs = [subprocess.Popen([*dask[:2], 'distributed.cli.dask_scheduler', '--host',
+                               '127.0.0.1', '--port', '0', '--dashboard-address', ':0',
+                               '--scheduler-file', str(scheduler_file)],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                              start_new_session=True)]
+    try:
+        end = time.monotonic() + 60
+        while not scheduler_file.exists():
+            assert time.monotonic() < end
+            time.sleep(0.1)
+        address = json.loads(scheduler_file.read_text())['address']
+        procs.append(subprocess.Popen(
+            [*dask[:2], 'distributed.cli.dask_worker', address, '--nworkers', '1',
+             '--nthreads', '1', '--no-dashboard'],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True))
+        study = study_file(tmp_path, {**SMALL, 'repeats': 1})
+        proc = subprocess.run([sys.executable, '-m', 'feeder_sim.cli', 'study', str(study),
+                               '--out', str(tmp_path / 'remote'), '--scheduler', address],
+                              capture_output=True, text=True, timeout=240)
+        assert proc.returncode == 0, proc.stderr
+        assert '4 trials (0 failed)' in proc.stdout
+        local = run_study(parse_study({**SMALL, 'repeats': 1}), tmp_path / 'local', workers=1,
+                          plots=False)
+        assert local['trials'] == 4
+        assert table(tmp_path / 'remote') == table(tmp_path / 'local')
+    finally:
+        for p in procs:
+            os.killpg(p.pid, signal.SIGTERM)
+            p.wait(timeout=30)
