@@ -14,7 +14,7 @@ Runs, in one process and interleaved ``--repeats`` times so that machine noise h
 
 Then the per-frame cost of ``record_frame`` with 50 parts resting on a track, and of the node's
 whole frame (publish + record) for the same scene. Prints a table, writes
-``benchmarks/results/node.json``::
+``out/bench/node.json`` (``--out`` elsewhere)::
 
     .venv/bin/python benchmarks/node.py [--duration 4] [--repeats 3]
 """
