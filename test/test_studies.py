@@ -237,3 +237,22 @@ def test_a_scheduler_and_a_worker_started_as_processes(tmp_path):
         for p in procs:
             os.killpg(p.pid, signal.SIGTERM)
             p.wait(timeout=30)
+
+
+def test_per_trial_logs_all_or_only_the_jammed(tmp_path):
+    # a drive of 1 nm leaves the box where it is: jammed after jam_time (1 s); 0.4 mm feeds it
+    from mcap.reader import make_reader
+    base = {**SMALL, 'duration': 1.5, 'repeats': 1, 'perturb': {},
+            'parameters': {'bodies[track].vibration.amplitude': [1e-9, 4e-4]},
+            'metrics': ['jammed', 'conveying_speed_mps']}
+    for record, kept in (('all', 2), ('jammed', 1)):
+        out = tmp_path / record
+        summary = run_study(parse_study({**base, 'record': record}), out, workers=1,
+                            plots=False)
+        assert [d['metrics']['jammed']['mean'] for d in summary['designs']] == [1.0, 0.0]
+        logs = sorted((out / 'logs').glob('*.mcap'))
+        assert len(logs) == kept
+        with open(logs[0], 'rb') as f:
+            assert make_reader(f).get_summary().statistics.message_count > 100
+        rows = {r['design']: r for r in json.loads((out / 'study.json').read_text())['designs']}
+        assert set(rows) == {0, 1}
