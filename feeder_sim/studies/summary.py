@@ -1,11 +1,11 @@
 """What a study leaves in its folder: every trial in a table, per-design statistics with 95 %
 intervals, and plots.
 
-Intervals: a proportion (``jammed``, ``rest:<orientation>``; ``fraction:<orientation>``,
-pooled over the trials' fed parts) gets Wilson's score interval; any other metric the mean's
-Student-t interval over its trials (none from a single trial). The best design is the one with
-the best mean of the study's objective (ties: the surest interval). ``overall`` in study.json
-takes every trial together.
+Intervals: a proportion (``jammed``; ``fraction:<orientation>`` and ``rest:<orientation>``,
+pooled over the trials' fed parts or parts) gets Wilson's score interval (scipy's binomtest);
+any other metric the mean's Student-t interval over its trials (none from a single trial).
+The best design is the one with the best mean of the study's objective (ties: the surest
+interval). ``overall`` in study.json takes every trial together.
 """
 
 from __future__ import annotations
@@ -21,17 +21,14 @@ from scipy import stats
 
 from feeder_sim.studies.spec import StudySpec
 
-Z95 = float(stats.norm.ppf(0.975))
-
 
 def wilson(successes: float, n: float) -> tuple[float, float]:
-    """Wilson's 95 % score interval of a proportion."""
+    """Wilson's 95 % score interval of a proportion (scipy's binomtest)."""
+    n, k = int(round(n)), int(round(successes))
     if n <= 0:
         return math.nan, math.nan
-    p = successes / n
-    centre = (p + Z95 ** 2 / (2 * n)) / (1 + Z95 ** 2 / n)
-    half = Z95 * math.sqrt(p * (1 - p) / n + Z95 ** 2 / (4 * n * n)) / (1 + Z95 ** 2 / n)
-    return max(0.0, centre - half), min(1.0, centre + half)
+    ci = stats.binomtest(min(k, n), n).proportion_ci(confidence_level=0.95, method='wilson')
+    return float(ci.low), float(ci.high)
 
 
 def t_interval(values: np.ndarray) -> tuple[float, float]:
@@ -68,10 +65,12 @@ def metric_statistics(spec: StudySpec, trials: list[dict]) -> dict[str, Any]:
     for metric in spec.metrics:
         values = np.array([r[metric] for r in ok], float)
         finite = values[np.isfinite(values)]
-        if metric.startswith('fraction:'):
-            fed = np.array([r.get('parts_fed_count', 0) for r in ok], float)
+        if metric.startswith(('fraction:', 'rest:')):
+            # shares of a trial's fed parts, or of its parts: pooled over the trials' parts
+            count = 'parts_fed_count' if metric.startswith('fraction:') else 'parts_count'
+            weight = np.array([r.get(count, 1) for r in ok], float)
             use = np.isfinite(values)
-            k, n = float(np.sum(values[use] * fed[use])), float(np.sum(fed[use]))
+            k, n = float(np.sum(values[use] * weight[use])), float(np.sum(weight[use]))
             mean = k / n if n else math.nan
             lo, hi = wilson(k, n)
             kind = 'wilson'

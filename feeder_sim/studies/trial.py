@@ -96,6 +96,7 @@ def run_trial(spec: StudySpec, design: Mapping[str, float], repeat: int,
                    for a in sim.state.angle[sim.part_indices]]
         row.update(metrics_of(result.summary, spec.metrics, resting))
         row['parts_fed_count'] = result.summary['outcomes']['parts_exited']
+        row['parts_count'] = len(resting)
         row['status'] = 'ok'
         row['error'] = ''
         row['jams_at'] = [[p['jam_time_s'], *(p['jam_position_m'] or [])]
