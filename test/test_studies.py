@@ -256,3 +256,18 @@ def test_per_trial_logs_all_or_only_the_jammed(tmp_path):
             assert make_reader(f).get_summary().statistics.message_count > 100
         rows = {r['design']: r for r in json.loads((out / 'study.json').read_text())['designs']}
         assert set(rows) == {0, 1}
+
+
+def test_the_point_mass_reference_beside_the_measured_speed(tmp_path):
+    # one box sliding and hopping on the track: the measured mean speed over 2 s (start-up
+    # included) is within 3 % of the point-mass theory's steady speed for the same design
+    spec = parse_study({**SMALL, 'duration': 2.0, 'repeats': 1, 'perturb': {},
+                        'parameters': {'bodies[track].vibration.amplitude': [2e-4, 3e-4]},
+                        'metrics': ['conveying_speed_mps'], 'reference': 'pointmass'})
+    summary = run_study(spec, tmp_path / 'out', workers=1, plots=True)
+    for d in summary['designs']:
+        theory = d['reference']['conveying_speed_mps']
+        assert theory > 0.01
+        assert d['metrics']['conveying_speed_mps']['mean'] == pytest.approx(theory, rel=0.03)
+    with pytest.raises(StudyError, match='add the metric conveying_speed_mps'):
+        parse_study({**SMALL, 'metrics': ['jams'], 'reference': 'pointmass'})

@@ -12,6 +12,7 @@
     metrics: [conveying_speed_mps, parts_fed, fraction:open_end_up]
     objective: {metric: conveying_speed_mps, goal: max}     # ranks designs (default: first)
     record: none                         # per-trial MCAP logs: none | all | jammed
+    reference: pointmass                 # optional: the point-mass conveying speed per design
 
 Value lists and ranges form a grid; sampled parameters (``random`` or ``lhs``, Latin
 hypercube) are drawn together, ``count`` points seeded by ``seed``, and combined with the
@@ -85,6 +86,7 @@ class StudySpec:
     publish_rate_hz: float = 100.0
     method: str | None = None
     record: str = 'none'                     # per-trial MCAP logs: none | all | jammed
+    reference: str | None = None             # 'pointmass': the theory beside the metric
     objective: str = ''                      # the metric that ranks designs (default: first)
     goal: str = 'max'                        # max | min
     source: str = '<study>'
@@ -237,7 +239,7 @@ def parse_study(data: Any, source: str = '<study>', study_path: Path | None = No
                 ) -> StudySpec:
     """Validate a study given as plain data; every design's scene is checked too."""
     allowed = {'scene', 'duration', 'repeats', 'seed', 'parameters', 'metrics', 'perturb',
-               'publish_rate', 'method', 'record', 'objective'}
+               'publish_rate', 'method', 'record', 'objective', 'reference'}
     if not isinstance(data, Mapping):
         raise StudyError(f'expected a mapping with the keys {", ".join(sorted(allowed))}',
                          '', source)
@@ -294,11 +296,19 @@ def parse_study(data: Any, source: str = '<study>', study_path: Path | None = No
             and objective.get('goal', 'max') in ('max', 'min')):
         raise StudyError('expected {metric: one of the metrics, goal: max|min}', 'objective',
                          source)
+    reference = data.get('reference')
+    if reference not in (None, 'pointmass'):
+        raise StudyError(f'expected pointmass (the point-mass conveying theory), got '
+                         f'{reference!r}', 'reference', source)
+    if reference and 'conveying_speed_mps' not in metrics:
+        raise StudyError('the point-mass reference is a conveying speed: add the metric '
+                         'conveying_speed_mps', 'reference', source)
     if data.get('method') is not None and data['method'] not in METHODS:
         raise StudyError(f'expected one of {", ".join(METHODS)}', 'method', source)
     spec = StudySpec(scene=scene, duration_s=duration, repeats=repeats, seed=seed,
                      parameters=parameters, metrics=tuple(metrics), perturb=perturb,
                      publish_rate_hz=rate, method=data.get('method'), record=record,
+                     reference=reference,
                      objective=objective['metric'], goal=objective.get('goal', 'max'),
                      source=source)
     n = len(spec.designs()) * repeats

@@ -19,7 +19,9 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from feeder_sim.studies.spec import StudySpec
+from feeder_sim.model.scene import Scene
+from feeder_sim.reports.pointmass import Conveyor, mean_speed
+from feeder_sim.studies.spec import scene_of_design, StudySpec
 
 
 def wilson(successes: float, n: float) -> tuple[float, float]:
@@ -53,6 +55,9 @@ def design_statistics(spec: StudySpec, rows: list[dict]) -> list[dict[str, Any]]
         trials = [r for r in rows if r['design'] == index]
         entry = {'design': index, 'parameters': {n: trials[0][n] for n in names},
                  **metric_statistics(spec, trials)}
+        if spec.reference == 'pointmass':
+            scene = scene_of_design(spec, entry['parameters'])
+            entry['reference'] = {'conveying_speed_mps': pointmass_speed(scene)}
         out.append(entry)
     return out
 
@@ -86,6 +91,23 @@ def metric_statistics(spec: StudySpec, trials: list[dict]) -> dict[str, Any]:
         entry['metrics'][metric] = {'mean': mean, 'ci95': [lo, hi], 'n': int(len(finite)),
                                     'interval': kind}
     return entry
+
+
+def pointmass_speed(scene: Scene) -> float:
+    """The point-mass theory's mean conveying speed (m/s) on the scene's track: its drive's
+    angle to the track, the track's slope, the part's friction on it (the contact rule), the
+    normal acceleration amplitude (reports.pointmass, physics reference section 4.3)."""
+    track = next(b for b in scene.bodies if b.name == scene.track)
+    part = next(b for b in scene.bodies if b.type == 'dynamic')
+    vib = track.vibration
+    g = float(np.linalg.norm(scene.gravity))
+    theta = float(track.pose[2])
+    omega = 2 * math.pi * vib.frequency
+    mu_s = math.sqrt(track.mu_static * part.mu_static)
+    mu_k = math.sqrt(track.mu_dynamic * part.mu_dynamic)
+    gamma = vib.amplitude * omega ** 2 * math.sin(vib.angle) / (g * math.cos(theta))
+    return mean_speed(Conveyor(psi=vib.angle, theta=theta, mu_s=mu_s, mu_k=mu_k, gamma=gamma,
+                               frequency_hz=vib.frequency, g=g))
 
 
 def best_design(spec: StudySpec, designs: list[dict]) -> dict | None:
@@ -172,6 +194,9 @@ def plot(spec: StudySpec, summary: dict, rows: list[dict], out: Path) -> list[Pa
                 d = designs[[e['design'] for e in designs].index(best)]
                 ax.plot(d['parameters'][names[0]], d['metrics'][metric]['mean'], '*', ms=16,
                         color='tab:red', label='best design')
+            theory = _reference(designs, metric)
+            if theory is not None:
+                ax.plot(x[o], theory[o], 'k--', lw=1, label='point-mass theory')
             ax.set_xlabel(names[0])
             ax.set_ylabel(metric)
             ax.legend(fontsize=8)
@@ -180,9 +205,17 @@ def plot(spec: StudySpec, summary: dict, rows: list[dict], out: Path) -> list[Pa
             y = np.array([d['parameters'][names[1]] for d in designs])
             ux, uy = np.unique(x), np.unique(y)
             if len(designs) == len(ux) * len(uy) and len(ux) > 1 and len(uy) > 1:
+                rows_, cols_ = np.searchsorted(uy, y), np.searchsorted(ux, x)
                 grid = np.full((len(uy), len(ux)), np.nan)
-                grid[np.searchsorted(uy, y), np.searchsorted(ux, x)] = mean
+                grid[rows_, cols_] = mean
                 mesh = ax.pcolormesh(ux, uy, grid, shading='nearest', cmap='viridis')
+                theory = _reference(designs, metric)
+                if theory is not None:
+                    levels = np.full_like(grid, np.nan)
+                    levels[rows_, cols_] = theory
+                    lines = ax.contour(ux, uy, levels, colors='white', linewidths=0.8)
+                    ax.clabel(lines, fontsize=7, fmt='%.3g')
+                    ax.plot([], [], color='white', lw=0.8, label='point-mass theory')
             else:
                 mesh = ax.scatter(x, y, c=mean, cmap='viridis', s=60)
             fig.colorbar(mesh, ax=ax, label=f'{metric} (mean)')
@@ -204,6 +237,12 @@ def plot(spec: StudySpec, summary: dict, rows: list[dict], out: Path) -> list[Pa
     if len(shares) > 1:
         written.append(_plot_shares(spec, summary, shares, out, plt))
     return written
+
+
+def _reference(designs: list[dict], metric: str) -> np.ndarray | None:
+    if not all(metric in d.get('reference', {}) for d in designs):
+        return None
+    return np.array([d['reference'][metric] for d in designs])
 
 
 def _plot_shares(spec: StudySpec, summary: dict, shares: list[str], out: Path, plt) -> Path:
