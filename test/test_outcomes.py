@@ -82,3 +82,19 @@ def test_feeding_part_exits_and_a_resting_one_jams(tmp_path):
     out = run(Simulator(still), 1.0).summary['outcomes']
     assert out['jams'] == 1 and out['parts'][0]['jam_time_s'] == pytest.approx(0.5, abs=0.011)
     assert out['parts_exited'] == 0 and out['feed_rate_parts_per_min'] == 0.0
+
+
+def test_the_steady_feed_rate_leaves_out_the_first_arrival():
+    # three parts leaving at 2, 3 and 4 s of a 5 s run: 36 per minute over the run, one per
+    # second (60 per minute) once they arrive
+    tracker = OutcomeTracker(('a', 'b', 'c'), OutcomeSpec(exit_position=1.0, jam_time=10.0))
+    for k in range(501):
+        t = k * 0.01
+        tracker.update(t, np.array([t - 1.0, t - 2.0, t - 3.0]), np.zeros((3, 2)), np.zeros(3))
+    out = tracker.summary()
+    assert [p['exit_time_s'] for p in out['parts']] == pytest.approx([2.0, 3.0, 4.0])
+    assert out['feed_rate_parts_per_min'] == pytest.approx(36.0)
+    assert out['feed_rate_steady_parts_per_min'] == pytest.approx(60.0)
+    one = OutcomeTracker(('a',), OutcomeSpec(exit_position=0.0))
+    one.update(0.0, np.ones(1), np.zeros((1, 2)), np.zeros(1))
+    assert one.summary()['feed_rate_steady_parts_per_min'] is None

@@ -103,10 +103,20 @@ class OutcomeTracker:
             'jam_distance_m': self.spec.jam_distance,
             'parts_exited': len(exited),
             'feed_rate_parts_per_min': 60.0 * len(exited) / span if span > 0 else 0.0,
+            'feed_rate_steady_parts_per_min': steady_feed_rate(
+                [p.exit_time_s for p in exited]),
             'exit_orientations': counts,
             'jams': len(jammed),
             'parts': [vars(p).copy() for p in self.parts],
         }
+
+
+def steady_feed_rate(exit_times_s: list[float]) -> float | None:
+    """Parts per minute between the first exit and the last: the rate once parts arrive,
+    without the time the first one took to get there (None with fewer than two exits, or
+    all at one instant)."""
+    span = max(exit_times_s) - min(exit_times_s) if len(exit_times_s) > 1 else 0.0
+    return 60.0 * (len(exit_times_s) - 1) / span if span > 0 else None
 
 
 def progress(sim, spec: OutcomeSpec) -> tuple[np.ndarray, np.ndarray]:

@@ -45,6 +45,7 @@ METRICS = {
     'final_position_m': "mean of the parts' final position along the track, m",
     'parts_fed': 'parts that passed the exit (outcomes.exit_position)',
     'feed_rate_per_min': 'parts fed per minute of simulated time',
+    'feed_rate_steady_per_min': 'parts fed per minute between the first exit and the last',
     'jams': 'parts found jammed',
     'jammed': '1 when any part jammed, else 0 (a proportion over trials)',
     'fraction:<orientation>': 'share of the fed parts that left in that named orientation '

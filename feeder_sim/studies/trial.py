@@ -58,6 +58,9 @@ def metrics_of(summary: Mapping[str, Any], names: tuple[str, ...],
             value = float(fed)
         elif name == 'feed_rate_per_min':
             value = float(outcomes['feed_rate_parts_per_min'])
+        elif name == 'feed_rate_steady_per_min':
+            steady = outcomes['feed_rate_steady_parts_per_min']
+            value = math.nan if steady is None else float(steady)
         elif name == 'jams':
             value = float(outcomes['jams'])
         elif name == 'jammed':
