@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 import copy
 from dataclasses import dataclass, replace
 import logging
@@ -18,7 +19,7 @@ import os
 import numpy as np
 
 from feeder_sim.contact.dynamics import SolverStats
-from feeder_sim.model.scene import load_scene, override_solver, Scene
+from feeder_sim.model.scene import load_scene, override_solver, parse_scene, Scene, scene_to_dict
 from feeder_sim.model.world import State, World
 from feeder_sim.stepping import StepContacts, STEPPERS
 
@@ -261,7 +262,10 @@ class Simulator:
             scene = replace(scene, solver=override_solver(scene.solver, changes,
                                                           f'{scene.name} (override)'))
         self.scene = scene
+        self._scene_at_start = scene
         self.world = World.from_scene(scene)
+        # index in self.world of each body of the starting scene (parts come and go)
+        self._start_index = list(range(len(scene.bodies)))
         self.stats = SolverStats()
         self._told: set[str] = set()     # kinds of inexact answers already logged
         self.state = self.world.initial_state()
@@ -350,11 +354,89 @@ class Simulator:
         self._stepper.reset()
 
     def reset(self) -> None:
-        """Back to the scene's initial state and vibration; statistics are kept."""
+        """Back to the scene's initial state, parts and vibration; statistics are kept."""
+        if self.scene is not self._scene_at_start:
+            drives = self.world.drives
+            self.scene = self._scene_at_start
+            # the drives go on as objects (a removed body is a part: it had none)
+            self.world = replace(World.from_scene(self.scene), drives=tuple(
+                None if j is None else drives[j] for j in self._start_index))
+            self._start_index = list(range(len(self.scene.bodies)))
         for d in self.world.drives:
             if d is not None:
                 d.reset()
         self.state = self.world.initial_state()
+        self._log = _ImpulseLog()
+        self._stepper = self._make_stepper()
+        if self.energy_check is not None:
+            self.energy_check.reference_j = self.mechanical_energy()
+
+    # -- parts that come and go -----------------------------------------------------------
+
+    def add_part(self, template: str, name: str, pose: Sequence[float],
+                 velocity: Sequence[float] = (0.0, 0.0, 0.0)) -> None:
+        """From now on, a new dynamic part shaped and made as the scene's body ``template``,
+        its body frame at ``pose`` ([x, y, angle], m and rad) moving at ``velocity`` ([vx, vy,
+        omega], m/s and rad/s). Checked as a scene file is (SceneError: a taken name, a pose
+        inside another body, ...)."""
+        found = [b for b in self.scene.bodies if b.name == template]
+        if not found or found[0].type != 'dynamic':
+            parts = ', '.join(self.world.names[i] for i in self.part_indices)
+            raise ValueError(f'template must name a dynamic body of the scene ({parts}), got '
+                             f'{template!r}')
+        body = replace(found[0], name=name, pose=np.asarray(pose, float),
+                       velocity=np.asarray(velocity, float))
+        self._rebuild([*self._now(), body], [*range(self.world.n), None])
+
+    def remove_part(self, name: str) -> None:
+        """The dynamic part ``name`` leaves the simulation (a sink, a part taken away)."""
+        index = self._part_index(name)
+        keep = [i for i in range(self.world.n) if i != index]
+        bodies = self._now()
+        self._rebuild([bodies[i] for i in keep], keep)
+
+    def set_part_pose(self, name: str, pose: Sequence[float],
+                      velocity: Sequence[float] = (0.0, 0.0, 0.0)) -> None:
+        """Put the part ``name`` at ``pose`` moving at ``velocity`` (units of add_part)."""
+        index = self._part_index(name)
+        bodies = self._now()
+        bodies[index] = replace(bodies[index], pose=np.asarray(pose, float),
+                                velocity=np.asarray(velocity, float))
+        self._rebuild(bodies, list(range(self.world.n)))
+
+    def _part_index(self, name: str) -> int:
+        names = self.world.names
+        if name not in names or not self.world.dynamic[names.index(name)]:
+            parts = ', '.join(names[i] for i in self.part_indices)
+            raise ValueError(f'no part named {name!r}; parts: {parts}')
+        return names.index(name)
+
+    def _now(self) -> list:
+        """The scene's bodies with the parts where they are now and moving as they are."""
+        origin, angle = self.world.body_frame_pose(self.state)
+        bodies = list(self.scene.bodies)
+        for i in self.part_indices:
+            bodies[i] = replace(bodies[i], pose=np.array([*origin[i], angle[i]]),
+                                velocity=np.array([*self.state.velocity[i], self.state.omega[i]]))
+        return bodies
+
+    def _rebuild(self, bodies: list, old_index: list[int | None]) -> None:
+        """A world of ``bodies`` (body k was body ``old_index[k]``, None: new) at the current
+        time: validated as a scene, drives carried over (with the commands they received),
+        the stepper started afresh; contacts not yet taken are dropped."""
+        data = scene_to_dict(replace(self.scene, bodies=tuple(bodies)))
+        scene = parse_scene(data, self.scene.source)
+        scene = replace(scene, solver=self.scene.solver, parameters=self.scene.parameters)
+        drives = self.world.drives
+        world = World.from_scene(scene)
+        world = replace(world, drives=tuple(
+            drives[j] if j is not None else None for j in old_index))
+        state = world.initial_state()
+        state.t = self.state.t
+        world.apply_prescribed_motion(state)
+        self._start_index = [old_index.index(j) if j in old_index else None
+                             for j in self._start_index]
+        self.scene, self.world, self.state = scene, world, state
         self._log = _ImpulseLog()
         self._stepper = self._make_stepper()
         if self.energy_check is not None:
