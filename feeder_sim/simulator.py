@@ -170,7 +170,7 @@ class EnergyCheck:
     a moving driven body takes energy from the drive, so the reference is taken again after
     it. ``tolerance`` is relative to the scene's energy scale (:meth:`Simulator.energy_scale_j`).
     With ``raise_error`` a violation raises :class:`EnergyInvariantError`; otherwise the
-    largest rise is kept in ``largest_rise`` (and ``at_s``) for a report.
+    largest rise is kept in ``largest_rise`` for a report.
     """
 
     def __init__(self, sim: Simulator, tolerance: float, *, raise_error: bool = True) -> None:
@@ -182,7 +182,6 @@ class EnergyCheck:
         self.scale_j = sim.energy_scale_j()
         self.reference_j = sim.mechanical_energy()
         self.largest_rise = 0.0          # of scale_j
-        self.at_s = sim.t
         self.checks = 0
         self.rebased = 0                 # intervals with drive work
         self._seen = 0                   # reports of this advance already checked per event
@@ -213,7 +212,7 @@ class EnergyCheck:
             return
         rise = (energy - self.reference_j) / self.scale_j
         if rise > self.largest_rise:
-            self.largest_rise, self.at_s = rise, state.t
+            self.largest_rise = rise
         if rise > self.tolerance:
             if self.raise_error:
                 raise EnergyInvariantError(
