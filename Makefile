@@ -7,7 +7,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 PIP := $(PY) -m pip --disable-pip-version-check -q
 # `make run` installs what running needs (the ROS 2 wheels, rerun for the replay); `make test`
-# adds the test tools (colcon, pytest, hypothesis, ruff, the peer engine)
+# adds the study tools (Dask) and the test tools (colcon, pytest, hypothesis, ruff, pymunk)
 RUN_STAMP := $(VENV)/.installed-run
 TEST_STAMP := $(VENV)/.installed-test
 
