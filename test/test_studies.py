@@ -271,3 +271,18 @@ def test_the_point_mass_reference_beside_the_measured_speed(tmp_path):
         assert d['metrics']['conveying_speed_mps']['mean'] == pytest.approx(theory, rel=0.03)
     with pytest.raises(StudyError, match='add the metric conveying_speed_mps'):
         parse_study({**SMALL, 'metrics': ['jams'], 'reference': 'pointmass'})
+
+
+def test_workers_need_neither_the_scene_file_nor_its_path(tmp_path):
+    # a cluster's workers on other machines: the scene travels with the study
+    scene = tmp_path / 'scene.yaml'
+    scene.write_text((Path(__file__).resolve().parents[1] / 'config' /
+                      'track_one_box.yaml').read_text())
+    study = study_file(tmp_path, {**SMALL, 'scene': 'scene.yaml', 'repeats': 1})
+    from feeder_sim.studies import load_study
+    spec = load_study(study)
+    scene.unlink()
+    summary = run_study(spec, tmp_path / 'out', workers=2, plots=False)
+    assert summary['failed'] == 0 and summary['trials'] == 4
+    with pytest.raises(StudyError, match=r'publish_rate: at most 100000'):
+        parse_study({**SMALL, 'publish_rate': 1e9})

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 import copy
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import hashlib
 import itertools
 import json
@@ -38,6 +38,7 @@ import numpy as np
 import yaml
 
 from feeder_sim.model.scene import METHODS, parse_scene, read_scene_data, Scene, SceneError
+from feeder_sim.simulator import MAX_PUBLISH_RATE_HZ
 
 MAX_TRIALS = 100_000
 METRICS = {
@@ -91,6 +92,10 @@ class StudySpec:
     objective: str = ''                      # the metric that ranks designs (default: first)
     goal: str = 'max'                        # max | min
     source: str = '<study>'
+    # the scene file's data, read once where the study is started: workers on other machines
+    # need neither the file nor the path
+    scene_data: Any = None
+    scene_source: str = ''
 
     def designs(self) -> list[dict[str, float]]:
         """Every design, in a fixed order: the grid of value lists, times the sample."""
@@ -292,6 +297,9 @@ def parse_study(data: Any, source: str = '<study>', study_path: Path | None = No
     if record not in ('none', 'all', 'jammed'):
         raise StudyError(f"expected none, all or jammed, got {record!r}", 'record', source)
     rate = _number(data.get('publish_rate', 100.0), 'publish_rate', source, positive=True)
+    if rate > MAX_PUBLISH_RATE_HZ:
+        raise StudyError(f'at most {MAX_PUBLISH_RATE_HZ:g} frames per simulated second, got '
+                         f'{rate:g}', 'publish_rate', source)
     objective = data.get('objective') or {'metric': metrics[0], 'goal': 'max'}
     if not (isinstance(objective, Mapping) and objective.get('metric') in metrics
             and objective.get('goal', 'max') in ('max', 'min')):
@@ -312,6 +320,11 @@ def parse_study(data: Any, source: str = '<study>', study_path: Path | None = No
                      reference=reference,
                      objective=objective['metric'], goal=objective.get('goal', 'max'),
                      source=source)
+    try:
+        data_, scene_source = read_scene_data(scene)
+    except SceneError as err:
+        raise StudyError(str(err), 'scene', source) from None
+    spec = replace(spec, scene_data=data_, scene_source=scene_source)
     n = len(spec.designs()) * repeats
     if n > MAX_TRIALS:
         raise StudyError(f'{n} trials; a study may have at most {MAX_TRIALS}', 'parameters',
@@ -321,8 +334,10 @@ def parse_study(data: Any, source: str = '<study>', study_path: Path | None = No
 
 
 def base_scene(spec: StudySpec) -> tuple[dict, str]:
-    data, source = read_scene_data(spec.scene)
-    return data, source
+    """The study's scene as plain data, and where it came from."""
+    if spec.scene_data is not None:
+        return spec.scene_data, spec.scene_source
+    return read_scene_data(spec.scene)
 
 
 def check_designs(spec: StudySpec) -> None:
