@@ -25,17 +25,31 @@ log = logging.getLogger('feeder_sim')
 
 @dataclass
 class Trajectory:
-    """Per-frame samples of the parts, kept for the summary and the plot."""
+    """Per-frame samples of the parts, kept for the summary and the plot. Parts that come
+    and go (sources, sinks) are followed by name: ``names`` lists every part seen, in order
+    of appearance, and a part's columns are NaN in the frames it was not there."""
 
     names: tuple[str, ...]
     t: list = field(default_factory=list)
     s: list = field(default_factory=list)        # along-track position per part, m
     speed: list = field(default_factory=list)    # along-track speed per part, m/s
+    frame_names: list = field(default_factory=list)
+
+    def add(self, t: float, names: tuple[str, ...], s: np.ndarray, speed: np.ndarray) -> None:
+        if not self.frame_names or names != self.frame_names[-1]:
+            seen = set(self.names)
+            self.names += tuple(n for n in names if n not in seen)
+        self.t.append(t), self.s.append(s), self.speed.append(speed)
+        self.frame_names.append(names)
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        n = len(self.names)
-        return (np.asarray(self.t), np.asarray(self.s).reshape(-1, n),
-                np.asarray(self.speed).reshape(-1, n))
+        column = {name: k for k, name in enumerate(self.names)}
+        s = np.full((len(self.t), len(self.names)), np.nan)
+        v = np.full_like(s, np.nan)
+        for i, (names, si, vi) in enumerate(zip(self.frame_names, self.s, self.speed)):
+            cols = [column[n] for n in names]
+            s[i, cols], v[i, cols] = si, vi
+        return np.asarray(self.t), s, v
 
 
 @dataclass
@@ -71,13 +85,14 @@ def run(sim: Simulator, duration_s: float, *, publish_rate_hz: float = 100.0,
     wall0 = time.perf_counter()
     last_report = wall0
     s, v = sim.track_coordinates()
-    traj.t.append(sim.t), traj.s.append(s), traj.speed.append(v)
+    traj.add(sim.t, names, s, v)
     try:
         for k in range(1, n_frames + 1):
             sim.advance_to(t0 + min(k * period, duration_s))
             frame = Frame.take(sim)
-            traj.t.append(sim.t), traj.s.append(frame.s), traj.speed.append(frame.speed)
-            outcomes.update(sim.t, *progress(sim, outcomes.spec), frame.angle - track_angle)
+            traj.add(sim.t, frame.names, frame.s, frame.speed)
+            outcomes.update(sim.t, *progress(sim, outcomes.spec), frame.angle - track_angle,
+                            frame.names)
             if recorder is not None:
                 record_frame(recorder, frame)
             if on_frame is not None:
@@ -95,13 +110,22 @@ def run(sim: Simulator, duration_s: float, *, publish_rate_hz: float = 100.0,
     wall = time.perf_counter() - wall0
     result = summary(sim, traj, wall, duration_s)
     result['outcomes'] = outcomes.summary()
+    if sim.feed is not None:
+        result['feed'] = sim.feed.counts()
+        result['outcomes']['recirculated'] = result['feed']['fell_back']
     return RunResult(result, traj)
 
 
 def summary(sim: Simulator, traj: Trajectory, wall_s: float, duration_s: float) -> dict:
     t, s, _ = traj.arrays()
-    span = t[-1] - t[0] if len(t) > 1 else 0.0
-    mean_v = (s[-1] - s[0]) / span if span > 0 else np.zeros(len(traj.names))
+    # each part over the frames it was there (all of them, without sources and sinks)
+    mean_v, final = [], []
+    for k in range(len(traj.names)):
+        there = np.flatnonzero(np.isfinite(s[:, k]))
+        first, last = there[0], there[-1]
+        span = t[last] - t[first]
+        mean_v.append((s[last, k] - s[first, k]) / span if span > 0 else 0.0)
+        final.append(s[last, k])
     energy = sim.mechanical_energy()
     return {
         'scene': sim.scene.name,
@@ -112,7 +136,7 @@ def summary(sim: Simulator, traj: Trajectory, wall_s: float, duration_s: float) 
         'wall_per_simulated_s': float(wall_s / duration_s),
         'parts': [{'name': n, 'mean_velocity_along_track_mps': float(mv),
                    'final_position_along_track_m': float(sf)}
-                  for n, mv, sf in zip(traj.names, mean_v, s[-1])],
+                  for n, mv, sf in zip(traj.names, mean_v, final, strict=True)],
         'solver': sim.stats.as_dict(),
         'energy': {'initial_mechanical_j': float(sim.initial_energy_j),
                    'final_mechanical_j': float(energy),

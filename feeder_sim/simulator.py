@@ -19,7 +19,14 @@ import os
 import numpy as np
 
 from feeder_sim.contact.dynamics import SolverStats
-from feeder_sim.model.scene import load_scene, override_solver, parse_scene, Scene, scene_to_dict
+from feeder_sim.model.scene import (
+    load_scene,
+    override_solver,
+    parse_scene,
+    Scene,
+    scene_to_dict,
+    SceneError,
+)
 from feeder_sim.model.world import State, World
 from feeder_sim.stepping import StepContacts, STEPPERS
 
@@ -231,6 +238,79 @@ class EnergyCheck:
         self._seen = 0
 
 
+class Feed:
+    """A scene's sources and sinks while it runs (see ``SourceSpec`` and ``SinkSpec``).
+
+    New parts are named ``<template>_<k>``; ``events`` lists (t s, name, what) with what one
+    of ``added``, ``blocked`` (the place was taken: the arrival waits for the next),
+    ``fell_back`` (below a sink's height) and ``left`` (past the exit)."""
+
+    def __init__(self, scene: Scene) -> None:
+        self.sources = scene.sources
+        self.sinks = scene.sinks
+        self.rng = [np.random.default_rng(src.seed) for src in self.sources]
+        self.next_t = [src.start for src in self.sources]
+        self.added = [0] * len(self.sources)
+        self.events: list[tuple[float, str, str]] = []
+
+    def next_arrival(self) -> float:
+        return min(self.next_t, default=math.inf)
+
+    def counts(self) -> dict[str, int]:
+        kinds = ('added', 'blocked', 'fell_back', 'left')
+        return {k: sum(e[2] == k for e in self.events) for k in kinds}
+
+    def arrive(self, sim: Simulator) -> None:
+        """The arrival due now (the earliest source's)."""
+        k = int(np.argmin(self.next_t))
+        src, rng, t = self.sources[k], self.rng[k], self.next_t[k]
+        (x_lo, x_hi), (y_lo, y_hi) = src.region
+        x, y = rng.uniform(x_lo, x_hi), rng.uniform(y_lo, y_hi)
+        shares = np.array([share for _, _, share in src.orientations])
+        _, angle, _ = src.orientations[rng.choice(len(shares), p=shares / shares.sum())]
+        if math.isnan(angle):
+            angle = next(b for b in sim.scene.bodies if b.name == src.template).pose[2]
+        number = self.added[k] + 1
+        while f'{src.template}_{number}' in sim.world.names:
+            number += 1
+        name = f'{src.template}_{number}'
+        try:
+            sim.add_part(src.template, name, [x, y, angle])
+        except SceneError:
+            self.events.append((t, name, 'blocked'))
+        else:
+            self.added[k] += 1
+            self.events.append((t, name, 'added'))
+        done = src.count and self.added[k] >= src.count
+        self.next_t[k] = math.inf if done else t + src.interval
+
+    def take_away(self, sim: Simulator) -> None:
+        """Remove the parts below a sink's height or past the exit."""
+        if not self.sinks:
+            return
+        names, _, _ = sim.part_poses()
+        spec = sim.scene.outcomes
+        com = sim.state.position[sim.part_indices]
+        # how far along to the exit, as the outcomes measure it
+        along = (sim.track_coordinates()[0] if spec.exit_axis is None
+                 else com @ np.asarray(spec.exit_axis))
+        exit_at = spec.exit_position
+        gone = []
+        for name, s, (_, y) in zip(names, along, com, strict=True):
+            for sink in self.sinks:
+                if sink.below is not None and y < sink.below:
+                    gone.append((name, 'fell_back'))
+                    break
+                if sink.past_exit and exit_at is not None and s >= exit_at:
+                    gone.append((name, 'left'))
+                    break
+        for name, what in gone:
+            if sim.world.n == 1:
+                break                 # a world keeps one body: the last part stays
+            sim.remove_part(name)
+            self.events.append((sim.t, name, what))
+
+
 class Simulator:
     """A world, its state, the chosen stepping method and the bookkeeping around them."""
 
@@ -275,6 +355,10 @@ class Simulator:
             check_energy = _env_tolerance(os.environ[CHECK_ENERGY_VAR])
         self.energy_check = None if check_energy is None else EnergyCheck(self, check_energy)
         self._stepper = self._make_stepper()
+        self.feed = Feed(scene) if scene.sources or scene.sinks else None
+        # the starting scene's parts, by name: the shapes add_part copies (a source's template
+        # may itself have left through a sink)
+        self._templates = {b.name: b for b in scene.bodies if b.type == 'dynamic'}
 
     def _make_stepper(self):
         spec = self.scene.solver
@@ -298,16 +382,30 @@ class Simulator:
         already there or past it (see :meth:`advance_by` to go on by a duration)."""
         if not math.isfinite(t_end):
             raise ValueError(f't_end must be finite, got {t_end!r}')
-        if self.energy_check is None:
-            for report in self._stepper.advance(self.state, t_end):
-                self._log.add(report)
-        else:
-            self._advance_checked(t_end)
+        if self.feed is None:
+            self._step_to(t_end)
+        elif t_end > self.t:
+            # sinks take away what the previous frame showed past them; sources add parts at
+            # their arrival times on the way
+            self.feed.take_away(self)
+            while True:
+                arrival = self.feed.next_arrival()
+                self._step_to(min(t_end, arrival))
+                if arrival > t_end or arrival > self.t + 1e-12:
+                    break
+                self.feed.arrive(self)
         for kind, line in self.stats.inexact().items():
             if kind not in self._told:
                 # once per kind and run; the counts go on in the summary and /diagnostics
                 self._told.add(kind)
                 log.error('%s: by t = %.6f s, %s', self.scene.name, self.state.t, line)
+
+    def _step_to(self, t_end: float) -> None:
+        if self.energy_check is None:
+            for report in self._stepper.advance(self.state, t_end):
+                self._log.add(report)
+        else:
+            self._advance_checked(t_end)
 
     def check_duration(self, duration_s: float, what: str = 'duration') -> None:
         """Refuse (ValueError naming ``what``) a run length that is not positive and finite or
@@ -369,6 +467,8 @@ class Simulator:
         self._stepper = self._make_stepper()
         if self.energy_check is not None:
             self.energy_check.reference_j = self.mechanical_energy()
+        if self.feed is not None:
+            self.feed = Feed(self.scene)
 
     # -- parts that come and go -----------------------------------------------------------
 
@@ -378,7 +478,8 @@ class Simulator:
         its body frame at ``pose`` ([x, y, angle], m and rad) moving at ``velocity`` ([vx, vy,
         omega], m/s and rad/s). Checked as a scene file is (SceneError: a taken name, a pose
         inside another body, ...)."""
-        found = [b for b in self.scene.bodies if b.name == template]
+        found = [b for b in (*self.scene.bodies, *self._templates.values())
+                 if b.name == template]
         if not found or found[0].type != 'dynamic':
             parts = ', '.join(self.world.names[i] for i in self.part_indices)
             raise ValueError(f'template must name a dynamic body of the scene ({parts}), got '
@@ -423,9 +524,12 @@ class Simulator:
         """A world of ``bodies`` (body k was body ``old_index[k]``, None: new) at the current
         time: validated as a scene, drives carried over (with the commands they received),
         the stepper started afresh; contacts not yet taken are dropped."""
-        data = scene_to_dict(replace(self.scene, bodies=tuple(bodies)))
+        # checked as a scene file, without the sources and sinks (their templates may have
+        # left: the feed keeps its own copies)
+        data = scene_to_dict(replace(self.scene, bodies=tuple(bodies), sources=(), sinks=()))
         scene = parse_scene(data, self.scene.source)
-        scene = replace(scene, solver=self.scene.solver, parameters=self.scene.parameters)
+        scene = replace(scene, solver=self.scene.solver, parameters=self.scene.parameters,
+                        sources=self.scene.sources, sinks=self.scene.sinks)
         drives = self.world.drives
         world = World.from_scene(scene)
         world = replace(world, drives=tuple(

@@ -600,3 +600,26 @@ def test_a_node_in_its_own_namespace_runs_but_is_told_of_a_shared_clock(graph):
     finally:
         g.close()
     assert not first.done
+
+
+def test_a_fed_scene_publishes_the_parts_as_they_come_and_go(graph):
+    # sources add a box every 0.5 s, a sink takes them away 0.15 m on: the poses' length
+    # follows, track_state names them, the node keeps going and deletes a leaving part's
+    # markers
+    scene = Path(__file__).parent / 'data' / 'fed_track.yaml'
+    poses = graph.listen(PoseArray, '/feeder_sim/part_poses')
+    track = graph.listen(JointState, '/feeder_sim/track_state')
+    markers = graph.listen(MarkerArray, '/feeder_sim/markers')
+    node = graph.start(scene=str(scene), real_time_factor=0.0, duration=4.0,
+                       marker_rate=1000.0)
+    graph.spin_until(lambda: node.done, timeout_s=120)
+    graph.spin_for(0.3)
+    counts = {len(m.poses) for m in poses}
+    assert max(counts) >= 3 and min(counts) <= 2
+    named = {tuple(m.name) for m in track}
+    assert ('box', 'box_1') in named or ('box_1',) in named
+    assert all(len(m.name) == len(m.position) for m in track)
+    feed = node.sim.feed.counts()
+    assert feed['added'] == 9 and feed['left'] >= 2                # at 0, 0.5, ... 4 s
+    deleted = {mk.ns for m in markers for mk in m.markers if mk.action == mk.DELETEALL}
+    assert any(name.startswith('box') for name in deleted)        # parts that left

@@ -212,6 +212,32 @@ class OutcomeSpec:
     orientation_tolerance: float = 0.35
 
 
+@dataclass(frozen=True)
+class SourceSpec:
+    """Parts added while the scene runs: copies of the dynamic body ``template`` (its shape and
+    material), one every ``interval`` s from ``start`` s on, ``count`` of them at most (0:
+    no limit); each body frame at a point drawn uniformly in ``region`` ((x_lo, x_hi), (y_lo,
+    y_hi), m, world) and at an angle drawn from ``orientations`` (name -> (angle rad, share)),
+    seeded by ``seed``. An arrival whose place is taken waits for the next one."""
+
+    template: str
+    interval: float
+    region: tuple[tuple[float, float], tuple[float, float]]
+    orientations: tuple[tuple[str, float, float], ...]
+    start: float = 0.0
+    count: int = 0
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class SinkSpec:
+    """Parts taken away: those whose centre of mass falls ``below`` a height (m, world: back
+    to the bowl), and, with ``past_exit``, those that have passed the outcomes' exit."""
+
+    below: float | None = None
+    past_exit: bool = False
+
+
 @dataclass(frozen=True, eq=False)
 class Scene(_ArrayFieldsEq):
     """A validated scene. ``gravity`` in m/s^2 (world frame, read-only); ``track`` names the body
@@ -226,6 +252,8 @@ class Scene(_ArrayFieldsEq):
     outcomes: OutcomeSpec = OutcomeSpec()
     # the values of the scene's named parameters this scene was built with
     parameters: Mapping[str, float] = field(default_factory=dict)
+    sources: tuple[SourceSpec, ...] = ()
+    sinks: tuple[SinkSpec, ...] = ()
 
     def __post_init__(self):
         object.__setattr__(self, 'gravity', _frozen(self.gravity, (2,)))
@@ -725,6 +753,82 @@ def _track_name(value, path: str) -> str | None:
     return None if value is None else _string(value, path)
 
 
+def _interval(value, path: str) -> tuple[float, float]:
+    lo, hi = _vec(value, path, 2, '[low, high] (m)', (MAX_LENGTH_M,) * 2)
+    if lo > hi:
+        raise _Invalid(path, f'[{lo:g}, {hi:g}] is empty; give [low, high]')
+    return float(lo), float(hi)
+
+
+def _region(value, path: str):
+    f = _fields(value, path, {'x': _Field(_interval, '[low, high] (m)'),
+                              'y': _Field(_interval, '[low, high] (m)')})
+    return f['x'], f['y']
+
+
+def _orientations_drawn(value, path: str) -> tuple[tuple[str, float, float], ...]:
+    if not isinstance(value, Mapping) or not value:
+        raise _Invalid(path, 'expected a mapping of name: {angle: rad, share: fraction}')
+    out = []
+    for name, spec in value.items():
+        f = _fields(spec, _join(path, str(name)),
+                    {'angle': _Field(_num(-MAX_ANGLE_RAD, MAX_ANGLE_RAD, unit='rad'),
+                                     'the angle in rad'),
+                     'share': _Field(_num(0.0, 1.0), 'a fraction of the parts', None)})
+        out.append((str(name), f['angle'], f['share']))
+    given = [share for _, _, share in out if share is not None]
+    rest = [k for k, (_, _, share) in enumerate(out) if share is None]
+    left = 1.0 - sum(given)
+    if left < -1e-9 or (not rest and abs(left) > 1e-9):
+        raise _Invalid(path, f'the shares add up to {sum(given):g}; they must add up to 1 '
+                             '(leave some out to share the rest equally)')
+    for k in rest:
+        out[k] = (out[k][0], out[k][1], max(left, 0.0) / len(rest))
+    return tuple(out)
+
+
+_SOURCE = {
+    'template': _Field(_string, 'the name of a dynamic body of the scene'),
+    'interval': _Field(_num(1e-3, 1e6, unit='s', hint='one part per interval'),
+                       'the time between two parts, s'),
+    'region': _Field(_region, '{x: [low, high], y: [low, high]} (m)'),
+    'orientations': _Field(_orientations_drawn, 'name: {angle: rad, share: fraction}', None),
+    'start': _Field(_num(0.0, unit='s'), 'the first arrival, s', 0.0),
+    'count': _Field(lambda v, p: int(_number(v, p, 0, 1e6)), 'a number of parts (0: no limit)',
+                    0),
+    'seed': _Field(lambda v, p: int(_number(v, p, 0, 2 ** 32)), 'a whole number', 0),
+}
+_SINK = {
+    'below': _Field(lambda v, p: None if v is None else _number(v, p, -MAX_LENGTH_M,
+                                                                 MAX_LENGTH_M, unit='m'),
+                    'a height, m (world)', None, nullable=True),
+    'past_exit': _Field(_boolean, 'true or false', False),
+}
+
+
+def _sources(value, path: str) -> tuple[SourceSpec, ...]:
+    if value is None:
+        return ()
+    if not _is_list(value):
+        raise _Invalid(path, f'expected a list of sources, got {_describe(value)}')
+    out = []
+    for k, item in enumerate(value):
+        f = _fields(item, f'{path}[{k}]', _SOURCE)
+        if f['orientations'] is None:
+            f['orientations'] = (('as_template', math.nan, 1.0),)
+        out.append(SourceSpec(**f))
+    return tuple(out)
+
+
+def _sinks(value, path: str) -> tuple[SinkSpec, ...]:
+    if value is None:
+        return ()
+    if not _is_list(value):
+        raise _Invalid(path, f'expected a list of sinks, got {_describe(value)}')
+    return tuple(SinkSpec(**_fields(item, f'{path}[{k}]', _SINK))
+                 for k, item in enumerate(value))
+
+
 _TOP = {
     'name': _Field(_string, 'a text', _AUTO),
     # read first, by parse_scene (the numbers of the rest may be expressions of them)
@@ -737,6 +841,10 @@ _TOP = {
     'bodies': _Field(_bodies, 'a non-empty list of bodies'),
     'outcomes': _Field(lambda v, p: _outcomes(v, p), 'a mapping of outcome settings',
                        OutcomeSpec(), nullable=True),
+    'sources': _Field(_sources, 'a list of sources (parts added while running)', (),
+                      nullable=True),
+    'sinks': _Field(_sinks, 'a list of sinks (parts taken away while running)', (),
+                    nullable=True),
 }
 
 
@@ -873,10 +981,17 @@ def parse_scene(data: Mapping, source: str = '<dict>',
             raise _Invalid('track', f'no body named {track!r}{_suggest(track, names)}; '
                                     f'expected one of: {", ".join(names)}')
         name = _default_name(source) if f['name'] is _AUTO else f['name']
+        templates = {b.name for b in bodies if b.type == 'dynamic'}
+        for k, src in enumerate(f['sources'] or ()):
+            if src.template not in templates:
+                raise _Invalid(f'sources[{k}].template',
+                               f'no dynamic body named {src.template!r}'
+                               f'{_suggest(src.template, sorted(templates))}; expected one of: '
+                               f'{", ".join(sorted(templates)) or "none"}')
         return Scene(name=name, gravity=f['gravity'], solver=f['solver'], bodies=bodies,
                      track=track, source=source,
                      outcomes=f['outcomes'] if f['outcomes'] is not None else OutcomeSpec(),
-                     parameters=values)
+                     parameters=values, sources=f['sources'] or (), sinks=f['sinks'] or ())
     except _Invalid as err:
         raise SceneError(err.message, err.path, source) from None
     finally:
@@ -1091,7 +1206,20 @@ def scene_to_dict(scene: Scene) -> dict:
         # the values used (every number above is already resolved)
         **({'parameters': {k: float(v) for k, v in scene.parameters.items()}}
            if scene.parameters else {}),
+        **({'sources': [_source_dict(src) for src in scene.sources]} if scene.sources else {}),
+        **({'sinks': [{'below': k.below, 'past_exit': k.past_exit} for k in scene.sinks]}
+           if scene.sinks else {}),
     }
+
+
+def _source_dict(src: SourceSpec) -> dict:
+    out = {'template': src.template, 'interval': src.interval, 'start': src.start,
+           'count': src.count, 'seed': src.seed,
+           'region': {'x': list(src.region[0]), 'y': list(src.region[1])}}
+    if not (len(src.orientations) == 1 and math.isnan(src.orientations[0][1])):
+        out['orientations'] = {name: {'angle': angle, 'share': share}
+                               for name, angle, share in src.orientations}
+    return out
 
 
 def _outcomes_dict(spec: OutcomeSpec) -> dict:

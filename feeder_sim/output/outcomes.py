@@ -58,29 +58,39 @@ class OutcomeTracker:
         self._history = deque()
 
     def update(self, t_s: float, progress_m: np.ndarray, position_m: np.ndarray,
-               angle_rad: np.ndarray) -> None:
+               angle_rad: np.ndarray, names: tuple[str, ...] | None = None) -> None:
         """One frame: simulated time, progress towards the exit, centres of mass (n, 2) and
-        angles to the track."""
+        angles to the track of the parts ``names`` (default: those given at construction;
+        parts that come and go are followed by name)."""
+        if names is not None and tuple(names) != self.names:
+            known = {p.name for p in self.parts}
+            self.parts += [PartOutcome(n) for n in names if n not in known]
+            self.names = tuple(names)
+        by_name = {p.name: p for p in self.parts}
+        current = [by_name[n] for n in self.names]
         if self._t0 is None:
             self._t0 = t_s
         self._t = t_s
         exit_at = self.spec.exit_position
         position = np.array(position_m, dtype=float).reshape(-1, 2)
-        for part, s, a, p in zip(self.parts, progress_m, angle_rad, position):
+        for part, s, a, p in zip(current, progress_m, angle_rad, position):
             if part.exit_time_s is None and exit_at is not None and s >= exit_at:
                 part.exit_time_s = float(t_s)
                 part.exit_point_m = [float(p[0]), float(p[1])]
                 part.exit_angle_rad = float(math.remainder(a, 2.0 * math.pi))
                 part.exit_orientation = classify(part.exit_angle_rad, self.spec)
-        self._history.append((t_s, position))
+        # by name: parts may come and go; one that came later is judged from when it came
+        self._history.append((t_s, dict(zip(self.names, position))))
         # Keep just enough history to look back one jam_time.
         while len(self._history) > 1 and self._history[1][0] <= t_s - self.spec.jam_time:
             self._history.popleft()
         t_old, p_old = self._history[0]
         if t_s - t_old < self.spec.jam_time - 1e-12:
             return
-        moved = np.hypot(*(position - p_old).T)
-        for part, dist, p in zip(self.parts, moved, position):
+        for part, p in zip(current, position):
+            if part.name not in p_old:
+                continue
+            dist = math.hypot(*(p - p_old[part.name]))
             if part.exit_time_s is None and part.jam_time_s is None and \
                     dist < self.spec.jam_distance:
                 part.jam_time_s = float(t_s)

@@ -196,6 +196,13 @@ def impulse_arrows(t_ns: int, report, scale_m_per_ns: float, frame_id: str,
     return out
 
 
+def delete_markers(t_ns: int, ns: str, frame_id: str) -> Marker:
+    """Delete every marker of namespace ``ns`` (a part that left)."""
+    m = Marker(ns=ns, action=Marker.DELETEALL)
+    m.header = header(t_ns, frame_id)
+    return m
+
+
 def marker_array(markers: list[Marker]) -> MarkerArray:
     return MarkerArray(markers=markers)
 

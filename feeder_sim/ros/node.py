@@ -205,11 +205,13 @@ class SimNode(Node):
         world = self.sim.world
         self._parts = self.sim.part_indices
         self._others = np.flatnonzero(world.body_type != DYNAMIC)
-        self._s_start = self.sim.track_coordinates()[0]
+        self._s_start = dict(zip(self.sim.part_poses()[0], self.sim.track_coordinates()[0]))
         self._line_width, self._auto_impulse_scale = self._marker_sizes()
         self._last_markers = -np.inf
+        self._world = world
         self._outlines = msgs.Outlines([b.outlines for b in world.scene.bodies], world.names,
                                        self.frame_id, self._line_width)
+        self._gone: list[str] = []          # parts taken away since the last markers
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         overridable = QoSOverridingOptions.with_default_policies()
@@ -311,8 +313,9 @@ class SimNode(Node):
         self._publish_frame(Frame.take(self.sim))
         if self.duration_ns and self.t_ns >= self.duration_ns:
             s, _ = self.sim.track_coordinates()
-            feed = ', '.join(f'{name} {1e3 * (b - a) / self.sim.t:.2f} mm/s' for name, a, b
-                             in zip(self.sim.part_poses()[0][:5], self._s_start, s))
+            names = self.sim.part_poses()[0]
+            feed = ', '.join(f'{name} {1e3 * (b - self._s_start[name]) / self.sim.t:.2f} mm/s'
+                             for name, b in zip(names[:5], s))
             self.get_logger().info(f'duration reached: t = {self.sim.t:.6g} s simulated; mean '
                                    f'speed along the track: {feed}'
                                    + (' ...' if len(s) > 5 else ''))
@@ -352,7 +355,23 @@ class SimNode(Node):
 
     # -- publishing ------------------------------------------------------------------------
 
+    def _follow_parts(self) -> None:
+        """Sources, sinks or a reset changed the parts: follow them (indices, outlines; the
+        markers of parts that left are deleted with the next markers)."""
+        world = self.sim.world
+        if world is self._world:
+            return
+        self._gone += sorted(set(self._world.names) - set(world.names))
+        self._world = world
+        self._parts = self.sim.part_indices
+        self._others = np.flatnonzero(world.body_type != DYNAMIC)
+        self._outlines = msgs.Outlines([b.outlines for b in world.scene.bodies], world.names,
+                                       self.frame_id, self._line_width)
+        for name, s0 in zip(self.sim.part_poses()[0], self.sim.track_coordinates()[0]):
+            self._s_start.setdefault(name, s0)
+
     def _publish_frame(self, frame: Frame) -> None:
+        self._follow_parts()
         t_ns, contacts = frame.t_ns, frame.contacts
         com = self.sim.state.position
         # A message nobody subscribes to is not built: serializing it is most of the cost.
@@ -380,7 +399,9 @@ class SimNode(Node):
         if rate <= 0.0 or now - self._last_markers < 1.0 / rate:
             return
         self._last_markers = now
-        markers = self._outlines.markers(frame.t_ns, self._parts, frame.origin, frame.angle)
+        markers = [msgs.delete_markers(frame.t_ns, name, self.frame_id) for name in self._gone]
+        self._gone = []
+        markers += self._outlines.markers(frame.t_ns, self._parts, frame.origin, frame.angle)
         markers += msgs.impulse_arrows(frame.t_ns, frame.contacts, self._impulse_scale(),
                                        self.frame_id, 0.1 * self._line_width)
         self.pub_markers.publish(msgs.marker_array(markers))

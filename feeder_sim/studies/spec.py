@@ -48,6 +48,7 @@ METRICS = {
     'feed_rate_per_min': 'parts fed per minute of simulated time',
     'feed_rate_steady_per_min': 'parts fed per minute between the first exit and the last',
     'jams': 'parts found jammed',
+    'recirculated': 'parts a sink took back to the bowl (fell below its height)',
     'jammed': '1 when any part jammed, else 0 (a proportion over trials)',
     'fraction:<orientation>': 'share of the fed parts that left in that named orientation '
                               '(a proportion)',

@@ -63,6 +63,8 @@ def metrics_of(summary: Mapping[str, Any], names: tuple[str, ...],
             value = math.nan if steady is None else float(steady)
         elif name == 'jams':
             value = float(outcomes['jams'])
+        elif name == 'recirculated':
+            value = float(outcomes.get('recirculated', 0))
         elif name == 'jammed':
             value = float(outcomes['jams'] > 0)
         elif name.startswith('rest:'):

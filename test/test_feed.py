@@ -1,0 +1,102 @@
+"""A continuously fed scene: sources add parts at their interval, seeded, drawn from their
+region and orientation shares; sinks take away parts past the exit or fallen back; the run's
+outcomes count them."""
+
+import copy
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from feeder_sim.model.scene import parse_scene, SceneError
+from feeder_sim.run import run
+from feeder_sim.simulator import Simulator
+
+FED = yaml.safe_load((Path(__file__).parent / 'data' / 'fed_track.yaml').read_text())
+
+# parts released 1 m up in free space, taken away once they fall below 0.9 m: never in
+# each other's way, so every arrival is added
+RAIN = {
+    'gravity': [0.0, -9.81],
+    'solver': {'method': 'time_stepping', 'time_step': 1e-3},
+    'sources': [{'template': 'drop', 'interval': 0.2, 'start': 0.1, 'seed': 5,
+                 'region': {'x': [-0.5, 0.5], 'y': [1.0, 1.0]},
+                 'orientations': {'flat': {'angle': 0.0, 'share': 0.7},
+                                  'upright': {'angle': math.pi / 2}}}],
+    'sinks': [{'below': 0.9}],
+    'bodies': [{'name': 'drop', 'type': 'dynamic', 'mass': 0.01, 'pose': [2.0, 1.0, 0.0],
+                'polygon': [[-0.01, -0.005], [0.01, -0.005], [0.01, 0.005], [-0.01, 0.005]]},
+               {'name': 'far_floor', 'type': 'static', 'pose': [0.0, -10.0, 0.0],
+                'polygon': [[-1.0, -0.1], [1.0, -0.1], [1.0, 0.0], [-1.0, 0.0]]}],
+}
+
+
+def test_arrivals_come_at_their_interval_drawn_from_the_region_and_shares():
+    sim = Simulator(parse_scene(RAIN))
+    angles, xs = [], []
+    for k in range(1, 401):
+        sim.advance_to(0.1 * k)
+        names, origin, angle = sim.part_poses()
+        for n, o, a in zip(names, origin, angle):
+            if n.startswith('drop_') and n not in {x[0] for x in xs}:
+                xs.append((n, o[0]))
+                angles.append(a)
+    counts = sim.feed.counts()
+    # arrivals at 0.1, 0.3, ..., 39.9 s: 200, every one added, every one fallen back (the
+    # template too) but those still above 0.9 m
+    assert counts['added'] == 200 and counts['blocked'] == 0
+    assert counts['fell_back'] >= 199
+    flat = np.mean(np.isclose(np.array(angles), 0.0))
+    assert flat == pytest.approx(0.7, abs=0.1)                   # seeded: 200 draws
+    x = np.array([v for _, v in xs])
+    assert x.min() >= -0.5 and x.max() <= 0.5 and np.std(x) == pytest.approx(1 / math.sqrt(12),
+                                                                            rel=0.15)
+    again = Simulator(parse_scene(RAIN))
+    again.advance_to(2.0)
+    sim.reset()
+    sim.advance_to(2.0)
+    assert sim.feed.events == again.feed.events                  # reset: the same arrivals
+
+
+def test_a_taken_place_blocks_the_arrival_until_it_is_free():
+    # arrivals every 0.05 s at the same spot on a still track: one box stays there
+    data = copy.deepcopy(FED)
+    data['bodies'][0]['vibration']['amplitude'] = 0.0
+    data['sources'][0]['interval'] = 0.05
+    data['bodies'][1]['pose'] = [0.3, 0.005, 0.0]
+    sim = Simulator(parse_scene(data))
+    sim.advance_to(0.5)
+    counts = sim.feed.counts()
+    assert counts['added'] == 1 and counts['blocked'] == 10      # at 0.05, 0.1, ... 0.5 s
+
+
+def test_a_fed_track_feeds_at_the_source_rate():
+    # one box every 0.5 s, taken away 0.15 m on: once they arrive, 120 per minute
+    sim = Simulator(parse_scene(FED))
+    out = run(sim, 8.0, publish_rate_hz=100.0).summary
+    assert out['feed']['added'] == 17
+    # the source's boxes leave one per interval (their start varies by 1 cm: 0.15 s)
+    exits = sorted(p['exit_time_s'] for p in out['outcomes']['parts']
+                   if p['name'].startswith('box_') and p['exit_time_s'] is not None)
+    assert len(exits) >= 10
+    assert 60.0 * (len(exits) - 1) / (exits[-1] - exits[0]) == pytest.approx(120.0, rel=0.05)
+    assert out['outcomes']['recirculated'] == 0
+    speeds = [p['mean_velocity_along_track_mps'] for p in out['parts'][1:10]]
+    assert np.std(speeds) < 0.02 * np.mean(speeds)               # each conveys alike
+
+
+@pytest.mark.parametrize('change, path, fragment', [
+    ({'template': 'track'}, 'sources[0].template', "no dynamic body named 'track'"),
+    ({'interval': 0.0}, 'sources[0].interval', 'out of range'),
+    ({'orientations': {'a': {'angle': 0.0, 'share': 0.8}, 'b': {'angle': 1.0, 'share': 0.8}}},
+     'sources[0].orientations', 'add up to 1.6'),
+    ({'region': {'x': [1.0, 0.0], 'y': [0.0, 0.1]}}, 'sources[0].region.x', 'is empty'),
+], ids=['template', 'interval', 'shares', 'region'])
+def test_bad_sources_are_one_line_naming_the_key(change, path, fragment):
+    data = copy.deepcopy(FED)
+    data['sources'][0].update(change)
+    with pytest.raises(SceneError) as err:
+        parse_scene(data)
+    assert err.value.path == path and fragment in err.value.message, str(err.value)
