@@ -93,10 +93,18 @@ def test_a_fed_track_feeds_at_the_source_rate():
     ({'orientations': {'a': {'angle': 0.0, 'share': 0.8}, 'b': {'angle': 1.0, 'share': 0.8}}},
      'sources[0].orientations', 'add up to 1.6'),
     ({'region': {'x': [1.0, 0.0], 'y': [0.0, 0.1]}}, 'sources[0].region.x', 'is empty'),
-], ids=['template', 'interval', 'shares', 'region'])
+    ({'rate': 2.0}, 'sources[0]', 'either interval (s between parts) or rate'),
+], ids=['template', 'interval', 'shares', 'region', 'both'])
 def test_bad_sources_are_one_line_naming_the_key(change, path, fragment):
     data = copy.deepcopy(FED)
     data['sources'][0].update(change)
     with pytest.raises(SceneError) as err:
         parse_scene(data)
     assert err.value.path == path and fragment in err.value.message, str(err.value)
+
+
+def test_a_rate_is_one_over_the_interval():
+    data = copy.deepcopy(FED)
+    del data['sources'][0]['interval']
+    data['sources'][0]['rate'] = 2.0
+    assert parse_scene(data).sources == parse_scene(FED).sources

@@ -790,7 +790,9 @@ def _orientations_drawn(value, path: str) -> tuple[tuple[str, float, float], ...
 _SOURCE = {
     'template': _Field(_string, 'the name of a dynamic body of the scene'),
     'interval': _Field(_num(1e-3, 1e6, unit='s', hint='one part per interval'),
-                       'the time between two parts, s'),
+                       'the time between two parts, s', None),
+    'rate': _Field(_num(1e-6, 1e3, unit='parts/s'), 'parts per second (or give interval)',
+                   None),
     'region': _Field(_region, '{x: [low, high], y: [low, high]} (m)'),
     'orientations': _Field(_orientations_drawn, 'name: {angle: rad, share: fraction}', None),
     'start': _Field(_num(0.0, unit='s'), 'the first arrival, s', 0.0),
@@ -814,6 +816,12 @@ def _sources(value, path: str) -> tuple[SourceSpec, ...]:
     out = []
     for k, item in enumerate(value):
         f = _fields(item, f'{path}[{k}]', _SOURCE)
+        rate = f.pop('rate')
+        if (rate is None) == (f['interval'] is None):
+            raise _Invalid(f'{path}[{k}]', 'give either interval (s between parts) or rate '
+                                            '(parts per second)')
+        if rate is not None:
+            f['interval'] = 1.0 / rate
         if f['orientations'] is None:
             f['orientations'] = (('as_template', math.nan, 1.0),)
         out.append(SourceSpec(**f))
