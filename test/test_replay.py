@@ -464,3 +464,27 @@ def test_rerun_reads_the_raw_log_with_its_own_ros2_decoders(ten_log, tmp_path):
     assert any(e.startswith('/feeder_sim/track_state') and 'Scalars:scalars' in c
                for e, c in flat)
     assert any(e.startswith('/vibration_cmd') and 'Scalars:scalars' in c for e, c in flat)
+
+
+def test_parts_that_come_and_go_are_drawn_with_their_own_outlines(tmp_path):
+    # a fed track: boxes added every 0.5 s and taken away 0.15 m on; each frame draws the
+    # parts of that frame, named as track_state names them, each at its recorded pose
+    log = tmp_path / 'fed.mcap'
+    run(Simulator(str(Path(__file__).parent / 'data' / 'fed_track.yaml')), 3.0, record=log)
+    rrd = replay(log, tmp_path / 'fed.rrd', spawn=False)
+    names = {m.log_time_ns: list(m.ros_msg.name)
+             for m in read_ros2_messages(log, topics=['/feeder_sim/track_state'])}
+    poses = {m.log_time_ns: m.ros_msg
+             for m in read_ros2_messages(log, topics=['/feeder_sim/part_poses'])}
+    t, labels = temporal(rrd, '/world/parts', 'LineStrips2D:labels')
+    _, strips = temporal(rrd, '/world/parts', 'LineStrips2D:strips')
+    assert len(t) == len(poses) and len({len(x) for x in labels}) >= 3     # 2 to 5 parts
+    half_w, half_h = 0.01, 0.005
+    for ti, label, strip in zip(t, labels, strips):
+        assert label == names[int(ti)]
+        pose = poses[int(ti)].poses[-1]
+        yaw = 2 * math.atan2(pose.orientation.z, pose.orientation.w)
+        c, s = math.cos(yaw), math.sin(yaw)
+        corner = [pose.position.x + c * -half_w - s * -half_h,
+                  pose.position.y + s * -half_w + c * -half_h]
+        assert strip[-1][0] == pytest.approx(corner, abs=1e-6)      # f32 in the recording

@@ -15,9 +15,11 @@ after the previous ended), the ``episode`` timeline holds each message's episode
                                 animated: its motion (amplitude below a millimetre) is the
                                 scene's prescribed drive, not recorded data.
     ``/world/parts``            dynamic bodies: outline of every piece at every pose message,
-                                one colour per part, labelled with the part names. Without a
-                                scene in the log (older or foreign logs), the part origins as
-                                points instead.
+                                one colour per part, labelled with the part names. Parts that
+                                come and go (sources and sinks) are told apart by the names
+                                track_state gives at the same time, a source's parts drawn
+                                with their template's shape. Without a scene in the log (older
+                                or foreign logs), the part origins as points instead.
     ``/world/parts/origins``    body-frame origins (the recorded poses) as points.
     ``/world/contacts/points``  contact points of each contacts message.
     ``/world/contacts/impulses`` impulse that body_b gave body_a (the body owning the contact
@@ -148,6 +150,8 @@ class _Log:
     end_t: int                  # largest message time seen
     # log times (ns) at which episodes 1, 2, ... start (the simulation was reset); empty: one
     episode_starts: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    # the parts track_state named at each time (ns): which pose is which part
+    frame_names: dict = field(default_factory=dict)
 
 
 def _check_mcap(path: Path) -> None:
@@ -421,6 +425,7 @@ def _read_log(path: Path) -> _Log:
         vibration_t=np.array([m[0] for m in vibration], np.int64),
         vibration=np.array([m[1] for m in vibration], float).reshape(-1, 2),
         end_t=end_t, episode_starts=episode_starts,
+        frame_names={m[0]: tuple(m[1][:len(m[2])]) for m in track},
     )
 
 
@@ -566,9 +571,14 @@ def _log_parts(rec: rr.RecordingStream, log_: _Log, names: list[str]) -> None:
     parts = _parts(log_.scene)
     time = _time_columns(log_, log_.pose_t)
     outlines = bool(parts) and bool(np.all(log_.pose_count == len(parts)))
+    changing = None
     if parts and not outlines:
-        log.warning('%s: pose counts differ from the scene\'s %d parts; drawing origins only',
-                    log_.path, len(parts))
+        changing = _shapes_by_frame(log_)      # parts that came and went (sources and sinks)
+        if changing is not None:
+            outlines = True
+        else:
+            log.warning('%s: pose counts differ from the scene\'s %d parts; drawing origins '
+                        'only', log_.path, len(parts))
     colours = np.array([_colour(i) for i in range(len(names))], np.uint8).reshape(-1, 3)
     origin_path = '/world/parts/origins' if outlines else '/world/parts'
     rec.log(origin_path, rr.Points2D.from_fields(
@@ -576,8 +586,55 @@ def _log_parts(rec: rr.RecordingStream, log_: _Log, names: list[str]) -> None:
     rec.send_columns(origin_path, indexes=time,
                      columns=rr.Points2D.columns(positions=log_.origin).partition(
                          log_.pose_count))
-    if outlines:
+    if changing is not None:
+        _log_changing_outlines(rec, log_, changing, time)
+    elif outlines:
         _log_outlines(rec, log_, parts, time)
+
+
+def _shapes_by_frame(log_: _Log) -> list[list] | None:
+    """Per pose message, the body of each pose (the part's own, or for a part a source added,
+    ``<template>_<k>``, its template's), from the names track_state gave at the same time;
+    None when a frame cannot be told apart."""
+    bodies = {b.name: b for b in _parts(log_.scene)}
+    out = []
+    for t, count in zip(log_.pose_t.tolist(), log_.pose_count.tolist()):
+        names = log_.frame_names.get(t)
+        if names is None or len(names) != count:
+            return None
+        frame = []
+        for name in names:
+            body = bodies.get(name) or bodies.get(name.rpartition('_')[0])
+            if body is None:
+                return None
+            frame.append((name, body))
+        out.append(frame)
+    return out
+
+
+def _log_changing_outlines(rec: rr.RecordingStream, log_: _Log, shapes: list[list],
+                           time: list) -> None:
+    """The outlines of parts that come and go: each frame's parts with their own shapes,
+    coloured by name (in order of first appearance)."""
+    order: dict[str, int] = {}
+    strips, lengths, colours, labels = [], [], [], []
+    offset = 0
+    for frame in shapes:
+        count = 0
+        for k, (name, body) in enumerate(frame):
+            pose = (*log_.origin[offset + k], log_.angle[offset + k])
+            colour = _colour(order.setdefault(name, len(order)))
+            for outline in body.outlines:
+                strips.append(_transform(_closed(outline), pose))
+                colours.append(colour)
+                labels.append(name)
+                count += 1
+        offset += len(frame)
+        lengths.append(count)
+    rec.log('/world/parts', rr.LineStrips2D.from_fields(radii=_LINE_WIDTH), static=True)
+    rec.send_columns('/world/parts', indexes=time, columns=rr.LineStrips2D.columns(
+        strips=strips, colors=np.array(colours, np.uint8).reshape(-1, 3),
+        labels=labels).partition(lengths))
 
 
 def _log_outlines(rec: rr.RecordingStream, log_: _Log, parts: list,
