@@ -286,3 +286,12 @@ def test_workers_need_neither_the_scene_file_nor_its_path(tmp_path):
     assert summary['failed'] == 0 and summary['trials'] == 4
     with pytest.raises(StudyError, match=r'publish_rate: at most 100000'):
         parse_study({**SMALL, 'publish_rate': 1e9})
+
+
+def test_every_shipped_study_is_valid():
+    studies = sorted((Path(__file__).resolve().parents[1] / 'config' / 'studies').glob('*.yaml'))
+    assert len(studies) >= 4
+    from feeder_sim.studies import load_study
+    for path in studies:
+        spec = load_study(path)                       # the file and every design's scene
+        assert spec.designs() and spec.metrics
