@@ -607,11 +607,17 @@ def test_a_fed_scene_publishes_the_parts_as_they_come_and_go(graph):
     # follows, track_state names them, the node keeps going and deletes a leaving part's
     # markers
     scene = Path(__file__).parent / 'data' / 'fed_track.yaml'
-    poses = graph.listen(PoseArray, '/feeder_sim/part_poses')
-    track = graph.listen(JointState, '/feeder_sim/track_state')
-    markers = graph.listen(MarkerArray, '/feeder_sim/markers')
+    track = graph.listen(JointState, '/feeder_sim/track_state', 10_000)
+    # deep queues: frames run as fast as possible, a burst between two spins must not drop
+    # the message that deletes a part's markers
+    poses = graph.listen(PoseArray, '/feeder_sim/part_poses', 10_000)
+    markers = graph.listen(MarkerArray, '/feeder_sim/markers', 10_000)
     node = graph.start(scene=str(scene), real_time_factor=0.0, duration=4.0,
-                       marker_rate=1000.0)
+                       marker_rate=1000.0, start_paused=True)
+    # everyone matched before the parts start to leave (discovery may take seconds)
+    graph.spin_until(lambda: all(p.get_subscription_count() for p in (
+        node.pub_poses, node.pub_track, node.pub_markers)), timeout_s=60)
+    assert graph.call(SetBool, '/feeder_sim/pause', SetBool.Request(data=False)).success
     graph.spin_until(lambda: node.done, timeout_s=120)
     graph.spin_for(0.3)
     counts = {len(m.poses) for m in poses}
