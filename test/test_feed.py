@@ -72,9 +72,10 @@ def test_a_taken_place_blocks_the_arrival_until_it_is_free():
     assert counts['added'] == 1 and counts['blocked'] == 10      # at 0.05, 0.1, ... 0.5 s
 
 
-def test_a_fed_track_feeds_at_the_source_rate():
+@pytest.mark.parametrize('dt', [5e-5, 5e-4], ids=['scene step', '10x coarser'])
+def test_a_fed_track_feeds_at_the_source_rate(dt):
     # one box every 0.5 s, taken away 0.15 m on: once they arrive, 120 per minute
-    sim = Simulator(parse_scene(FED))
+    sim = Simulator(parse_scene(FED), time_step=dt)
     out = run(sim, 8.0, publish_rate_hz=100.0).summary
     assert out['feed']['added'] == 17
     # the source's boxes leave one per interval (their start varies by 1 cm: 0.15 s)
