@@ -356,9 +356,6 @@ class Simulator:
         self.energy_check = None if check_energy is None else EnergyCheck(self, check_energy)
         self._stepper = self._make_stepper()
         self.feed = Feed(scene) if scene.sources or scene.sinks else None
-        # the starting scene's parts, by name: the shapes add_part copies (a source's template
-        # may itself have left through a sink)
-        self._templates = {b.name: b for b in scene.bodies if b.type == 'dynamic'}
 
     def _make_stepper(self):
         spec = self.scene.solver
@@ -478,7 +475,8 @@ class Simulator:
         its body frame at ``pose`` ([x, y, angle], m and rad) moving at ``velocity`` ([vx, vy,
         omega], m/s and rad/s). Checked as a scene file is (SceneError: a taken name, a pose
         inside another body, ...)."""
-        found = [b for b in (*self.scene.bodies, *self._templates.values())
+        # the starting scene's parts too: a source's template may itself have left by a sink
+        found = [b for b in (*self.scene.bodies, *self._scene_at_start.bodies)
                  if b.name == template]
         if not found or found[0].type != 'dynamic':
             parts = ', '.join(self.world.names[i] for i in self.part_indices)

@@ -335,19 +335,14 @@ def parse_study(data: Any, source: str = '<study>', study_path: Path | None = No
 
 
 def base_scene(spec: StudySpec) -> tuple[dict, str]:
-    """The study's scene as plain data, and where it came from."""
-    if spec.scene_data is not None:
-        return spec.scene_data, spec.scene_source
-    return read_scene_data(spec.scene)
+    """The study's scene as plain data (read by parse_study), and where it came from."""
+    return spec.scene_data, spec.scene_source
 
 
 def check_designs(spec: StudySpec) -> None:
     """Each value of each parameter must give a valid scene (the others at the first
     design's values); errors name the study parameter and the value."""
-    try:
-        base, source = base_scene(spec)
-    except SceneError as err:
-        raise StudyError(str(err), 'scene', spec.source) from None
+    base, source = base_scene(spec)
     designs = spec.designs()
     first = designs[0]
     seen: set = set()
