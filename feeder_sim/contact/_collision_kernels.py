@@ -52,6 +52,20 @@ def _argsort(keys):
 
 
 @inner
+def sorted_unique(x):
+    """``np.unique`` of an integer array (its sorted distinct values), at a fraction of the
+    compile time: numba's version brings its generic sort along."""
+    n = x.shape[0]
+    out = np.empty(n, x.dtype)
+    m = 0
+    for i in _argsort(x):
+        if m == 0 or x[i] != out[m - 1]:
+            out[m] = x[i]
+            m += 1
+    return out[:m]
+
+
+@inner
 def _where(mask):
     n = 0
     for v in mask:
@@ -161,7 +175,7 @@ def narrow_phase(w, nw, lo, hi, piece_start, piece_body, take, dyn, piece_width,
     out_e = np.empty(cap, np.int64)
     out_g = np.empty(cap)
     out_t = np.empty(cap)
-    n_out = 0
+    n_out = np.int64(0)      # never a literal: typing would compile _vertex_edge for it
     n_pairs = 0
     for ii in range(n_t):
         p = order[ii]

@@ -14,7 +14,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from feeder_sim._jit import jit
+from feeder_sim._jit import inner
 from feeder_sim.model.world import State, World
 
 
@@ -55,7 +55,9 @@ def corner_piece_candidates(world: World, state: State, active: np.ndarray, marg
     return CornerPieceCandidates(active[rows], cols, wx, wy, lo, hi)
 
 
-@jit
+# A line of arithmetic, inlined: compiled on its own, it was compiled again for each
+# combination of array flags (read-only or not) its callers pass.
+@inner(inline='always')
 def world_point(pos, ang, body, local):
     """World coordinates (m) of point ``local`` of body ``body`` at poses ``pos``, ``ang``."""
     c, s = math.cos(ang[body]), math.sin(ang[body])

@@ -354,7 +354,7 @@ def _impacts(c, pos, ang, vel, om, world, tols, stats, rec, rows):
     k = c.vertex.shape[0]
     point, normal, _, _ = _geometry(pos, ang, c)
     r_a, r_b = _arms(pos, c, point)
-    bodies = np.unique(c.body_a)
+    bodies = kern.sorted_unique(c.body_a)
     no_friction = np.zeros(k, np.int64)
     slave = np.zeros(k)
     for _ in range(20):
@@ -444,7 +444,7 @@ def _mode_at_event(t, c, pos, ang, vel, om, model, world, tols, acc, stats):
             stats[N_TRIVIAL] += 1
     else:
         ok, _, _, W = kern.contact_jacobian(normal, r_a, r_b, a, b, dynamic, inv_mass,
-                                            inv_inertia, np.unique(a))
+                                            inv_inertia, kern.sorted_unique(a))
         if not ok:
             return fail
         f, x, _, res, pivots, _, _ = kern.lcp_dantzig(W, b_full, fr, mu_s, mu_s,
@@ -534,7 +534,8 @@ def follow(t0, t_stop, h, state, model, world, held, mode, near, geometry, mater
     dvel = np.empty(nd)
     cands = _candidates(near, held)
     t = t0
-    steps = events = rows = 0
+    steps = events = 0
+    rows = np.int64(0)   # never a literal: typing would compile _record and _impacts for it
     while True:
         k = held.vertex.shape[0]
         _, normal, _, _ = _geometry(pos, ang, held)

@@ -29,6 +29,7 @@ from typing import NamedTuple
 import numpy as np
 
 from feeder_sim._jit import jit
+from feeder_sim.contact._collision_kernels import sorted_unique
 from feeder_sim.contact._lcp_kernels import BOX_ROW, reduce_lcp, SLAVED_ROW
 from feeder_sim.contact._lcp_kernels import lcp_dantzig as lcp_dantzig
 from feeder_sim.contact._lcp_kernels import lcp_known_pattern as lcp_known_pattern
@@ -555,7 +556,7 @@ def _locate(tp, h, g_lo, g_hi, hit, t0, offset, bodies, drives, contacts, cands,
     ``g_hi`` and ``offset`` are those of the hit functions only."""
     lo, hi = 0.0, h
     best = h
-    side = 0
+    side = np.int64(0)   # typed as the Python callers pass it: one compile of illinois_narrow
     g_all = np.empty(n_events)
     for _ in range(100):
         if hi - lo <= 1e-15 * max(1.0, abs(tp)) + 1e-16:
@@ -645,7 +646,7 @@ def closed_form_mode(normal, r_a, r_b, body_a, body_b, dynamic, inv_mass, inv_in
     then the phase has no closed form. ``drive_of`` is each body's drive (-1: none)."""
     k = normal.shape[0]
     nd = drive_u.shape[0]
-    bodies = np.unique(body_a)
+    bodies = sorted_unique(body_a)
     nb = bodies.shape[0]
     dv = np.zeros((nb, 3, 1 + nd))
     f = np.zeros((2 * k, 1 + nd))

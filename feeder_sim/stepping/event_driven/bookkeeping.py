@@ -80,7 +80,10 @@ class Candidates:
         key = (held.vertex_a.tobytes(), held.piece_b.tobytes())
         out = self.reduced.get(key)
         if out is None:
-            keep = kern.held_mask(self.vertex, self.piece, held.vertex_a, held.piece_b)
+            # contiguous, as the compiled chain passes them: one compile of held_mask
+            c = np.ascontiguousarray
+            keep = kern.held_mask(c(self.vertex), c(self.piece), c(held.vertex_a),
+                                  c(held.piece_b))
             out = self.reduced[key] = Candidates(
                 self.vertex[keep], self.piece[keep],
                 kern.CandidateArrays(*(x[keep] for x in self.arrays)),
