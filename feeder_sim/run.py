@@ -16,6 +16,7 @@ import time
 
 import numpy as np
 
+from feeder_sim.output import frames
 from feeder_sim.output.frames import Frame, open_recorder, record_frame
 from feeder_sim.output.outcomes import OutcomeTracker, progress
 from feeder_sim.simulator import MAX_PUBLISH_RATE_HZ, Simulator
@@ -76,6 +77,8 @@ def run(sim: Simulator, duration_s: float, *, publish_rate_hz: float = 100.0,
     names = sim.part_poses()[0]
     traj = Trajectory(names)
     outcomes = OutcomeTracker(names, sim.scene.outcomes)
+    sensors = frames.sensor_bank(sim)
+    frames.read_sensors(sim, sensors)   # where the parts start: a pass in frame 1 counts
     w = sim.world
     track_angle = w.base_angle[w.track_index] if w.track_index is not None else 0.0
     t0 = sim.t
@@ -89,7 +92,7 @@ def run(sim: Simulator, duration_s: float, *, publish_rate_hz: float = 100.0,
     try:
         for k in range(1, n_frames + 1):
             sim.advance_to(t0 + min(k * period, duration_s))
-            frame = Frame.take(sim)
+            frame = Frame.take(sim, sensors)
             traj.add(sim.t, frame.names, frame.s, frame.speed)
             outcomes.update(sim.t, *progress(sim, outcomes.spec), frame.angle - track_angle,
                             frame.names)
@@ -110,6 +113,9 @@ def run(sim: Simulator, duration_s: float, *, publish_rate_hz: float = 100.0,
     wall = time.perf_counter() - wall0
     result = summary(sim, traj, wall, duration_s)
     result['outcomes'] = outcomes.summary()
+    if sensors.specs:
+        result['sensors'] = {spec.name: count
+                             for spec, count in zip(sensors.specs, sensors.counts, strict=True)}
     if sim.feed is not None:
         result['feed'] = sim.feed.counts()
         result['outcomes']['recirculated'] = result['feed']['fell_back']

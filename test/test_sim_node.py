@@ -14,7 +14,7 @@ import sys
 import time
 
 from builtin_interfaces.msg import Time
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseArray
 from mcap_ros2.reader import read_ros2_messages
 import numpy as np
@@ -28,7 +28,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState, PointCloud2
-from std_msgs.msg import Float64MultiArray
+from std_msgs.msg import Bool, Float64MultiArray, UInt32
 from std_srvs.srv import SetBool, Trigger
 from visualization_msgs.msg import MarkerArray
 import yaml
@@ -629,3 +629,39 @@ def test_a_fed_scene_publishes_the_parts_as_they_come_and_go(graph):
     assert feed['added'] == 9 and feed['left'] >= 2                # at 0, 0.5, ... 4 s
     deleted = {mk.ns for m in markers for mk in m.markers if mk.action == mk.DELETEALL}
     assert any(name.startswith('box') for name in deleted)        # parts that left
+
+
+def test_sensors_over_dds_match_the_crossings_of_the_published_poses(graph):
+    # two boxes slide at 0.1 m/s through a beam at x = 0.05 m and an inspection line at
+    # x = 0.1 m (test/data/sensor_slide.yaml): every frame's count is the number of pose
+    # crossings so far, the beam is blocked while an outline overlaps it, and each part
+    # that passes the inspection line is one message naming its orientation
+    scene = Path(__file__).parent / 'data' / 'sensor_slide.yaml'
+    deep = QoSProfile(depth=10_000, reliability=ReliabilityPolicy.RELIABLE)
+    poses = graph.listen(PoseArray, '/feeder_sim/part_poses', deep)
+    blocked = graph.listen(Bool, '/feeder_sim/sensors/beam/blocked', deep)
+    beam = graph.listen(UInt32, '/feeder_sim/sensors/beam/count', deep)
+    camera = graph.listen(UInt32, '/feeder_sim/sensors/camera/count', deep)
+    passed = graph.listen(KeyValue, '/feeder_sim/sensors/camera/passed', deep)
+    node = graph.start(scene=str(scene), real_time_factor=0.0, duration=2.0,
+                       publish_rate=100.0, start_paused=True)
+    pubs = [node.pub_poses, *node.pub_sensors['beam'].values(),
+            *node.pub_sensors['camera'].values()]
+    graph.spin_until(lambda: all(p.get_subscription_count() for p in pubs), timeout_s=60)
+    assert graph.call(SetBool, '/feeder_sim/pause', SetBool.Request(data=False)).success
+    graph.spin_until(lambda: node.done and len(camera) >= 201, timeout_s=120)
+    graph.spin_for(0.3)
+    # the frame at start-up (subscribers may have missed it) and then 200 frames
+    poses, blocked, beam, camera = (x[-200:] for x in (poses, blocked, beam, camera))
+    start = {'flat_box': 0.0, 'upright_box': -0.05}
+    half = {'flat_box': 0.01, 'upright_box': 0.005}
+    for x, counts in ((0.05, beam), (0.1, camera)):
+        crossed = [sum(a.position.x < x <= b.position.x for a, b in zip(p0.poses, p1.poses))
+                   for p0, p1 in zip(poses, poses[1:])]
+        assert [m.data for m in counts[1:]] == list(np.cumsum(crossed) + counts[0].data)
+    assert beam[-1].data == camera[-1].data == 2
+    for pose, b in zip(poses, blocked, strict=True):
+        t = _ns(pose.header.stamp) / 1e9
+        gap = min(abs(start[n] + 0.1 * t - 0.05) - half[n] for n in start)
+        assert b.data == (gap < 0.0) or abs(gap) < 1e-9
+    assert [(m.key, m.value) for m in passed] == [('flat_box', 'flat'), ('upright_box', 'upright')]

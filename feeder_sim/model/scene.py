@@ -238,6 +238,25 @@ class SinkSpec:
     past_exit: bool = False
 
 
+SENSOR_KINDS = ('beam', 'inspection')
+
+
+@dataclass(frozen=True)
+class SensorSpec:
+    """A line across the parts' path, fixed in the world, from ``start`` to ``end`` (m).
+
+    A part *passes* it when its centre of mass crosses the segment from its left side to its
+    right (looking from ``start`` to ``end``: drawn upwards across a track along +x, it is
+    passed by parts moving along +x). A ``beam`` reports whether any part's outline
+    cuts the segment (presence) and counts the parts that passed; an ``inspection`` line
+    also names each passing part's orientation (the scene's ``outcomes.orientations``)."""
+
+    name: str
+    kind: str
+    start: tuple[float, float]
+    end: tuple[float, float]
+
+
 @dataclass(frozen=True, eq=False)
 class Scene(_ArrayFieldsEq):
     """A validated scene. ``gravity`` in m/s^2 (world frame, read-only); ``track`` names the body
@@ -254,6 +273,7 @@ class Scene(_ArrayFieldsEq):
     parameters: Mapping[str, float] = field(default_factory=dict)
     sources: tuple[SourceSpec, ...] = ()
     sinks: tuple[SinkSpec, ...] = ()
+    sensors: tuple[SensorSpec, ...] = ()
 
     def __post_init__(self):
         object.__setattr__(self, 'gravity', _frozen(self.gravity, (2,)))
@@ -828,6 +848,55 @@ def _sources(value, path: str) -> tuple[SourceSpec, ...]:
     return tuple(out)
 
 
+def _sensor_line(value, path: str) -> tuple[tuple[float, float], tuple[float, float]]:
+    if not _is_list(value) or len(value) != 2:
+        raise _Invalid(path, f'expected two points [[x0, y0], [x1, y1]] (m, world), got '
+                             f'{_describe(value)}')
+    a, b = (_vec(p, f'{path}[{k}]', 2, '[x, y] (m)', (MAX_LENGTH_M,) * 2)
+            for k, p in enumerate(value))
+    if math.hypot(*(b - a)) < MIN_OUTLINE_M:
+        raise _Invalid(path, f'the two points are {math.hypot(*(b - a)):.3g} m apart; a sensor '
+                             f'line needs at least {MIN_OUTLINE_M:g} m')
+    return (float(a[0]), float(a[1])), (float(b[0]), float(b[1]))
+
+
+def _sensor_name(value, path: str) -> str:
+    name = _string(value, path)
+    if not _IDENTIFIER.match(name):
+        raise _Invalid(path, f'{name!r} is not a name a ROS topic can carry; use letters, '
+                             'digits and _, not starting with a digit')
+    return name
+
+
+def _sensor_kind(value, path: str) -> str:
+    kind = _string(value, path)
+    if kind not in SENSOR_KINDS:
+        raise _Invalid(path, f'unknown sensor type {kind!r}{_suggest(kind, SENSOR_KINDS)}; '
+                             f'expected one of: {", ".join(SENSOR_KINDS)}')
+    return kind
+
+
+_SENSOR = {
+    'name': _Field(_sensor_name, 'a name (letters, digits, _)'),
+    'type': _Field(_sensor_kind, 'beam or inspection'),
+    'line': _Field(_sensor_line, '[[x0, y0], [x1, y1]] (m, world)'),
+}
+
+
+def _sensors(value, path: str) -> tuple[SensorSpec, ...]:
+    if value is None:
+        return ()
+    if not _is_list(value):
+        raise _Invalid(path, f'expected a list of sensors, got {_describe(value)}')
+    out: list[SensorSpec] = []
+    for k, item in enumerate(value):
+        f = _fields(item, f'{path}[{k}]', _SENSOR)
+        if f['name'] in {x.name for x in out}:
+            raise _Invalid(f'{path}[{k}].name', f'two sensors are named {f["name"]!r}')
+        out.append(SensorSpec(f['name'], f['type'], *f['line']))
+    return tuple(out)
+
+
 def _sinks(value, path: str) -> tuple[SinkSpec, ...]:
     if value is None:
         return ()
@@ -853,6 +922,8 @@ _TOP = {
                       nullable=True),
     'sinks': _Field(_sinks, 'a list of sinks (parts taken away while running)', (),
                     nullable=True),
+    'sensors': _Field(_sensors, 'a list of sensors (lines across the parts\' path)', (),
+                      nullable=True),
 }
 
 
@@ -999,7 +1070,8 @@ def parse_scene(data: Mapping, source: str = '<dict>',
         return Scene(name=name, gravity=f['gravity'], solver=f['solver'], bodies=bodies,
                      track=track, source=source,
                      outcomes=f['outcomes'] if f['outcomes'] is not None else OutcomeSpec(),
-                     parameters=values, sources=f['sources'] or (), sinks=f['sinks'] or ())
+                     parameters=values, sources=f['sources'] or (), sinks=f['sinks'] or (),
+                     sensors=f['sensors'] or ())
     except _Invalid as err:
         raise SceneError(err.message, err.path, source) from None
     finally:
@@ -1217,6 +1289,8 @@ def scene_to_dict(scene: Scene) -> dict:
         **({'sources': [_source_dict(src) for src in scene.sources]} if scene.sources else {}),
         **({'sinks': [{'below': k.below, 'past_exit': k.past_exit} for k in scene.sinks]}
            if scene.sinks else {}),
+        **({'sensors': [{'name': x.name, 'type': x.kind, 'line': [list(x.start), list(x.end)]}
+                        for x in scene.sensors]} if scene.sensors else {}),
     }
 
 

@@ -14,6 +14,7 @@ import numpy as np
 
 from feeder_sim import __version__
 from feeder_sim.model.scene import scene_to_dict
+from feeder_sim.output.sensors import SensorBank, SensorReading
 from feeder_sim.simulator import ContactReport, Simulator
 
 
@@ -28,13 +29,33 @@ class Frame:
     s: np.ndarray                # (n,) position along the track, m
     speed: np.ndarray            # (n,) speed along the track, m/s
     contacts: ContactReport      # contacts and impulses since the previous frame
+    sensors: tuple[SensorReading, ...] = ()   # the scene's sensors, in scene order
 
     @classmethod
-    def take(cls, sim: Simulator) -> Frame:
-        """The current frame of ``sim``; takes (and so resets) its contact report."""
+    def take(cls, sim: Simulator, sensors: SensorBank | None = None) -> Frame:
+        """The current frame of ``sim``; takes (and so resets) its contact report, and reads
+        ``sensors`` (which follow the parts from frame to frame)."""
         names, origin, angle = sim.part_poses()
         s, v = sim.track_coordinates()
-        return cls(round(sim.t * 1e9), names, origin, angle, s, v, sim.take_contacts())
+        readings = read_sensors(sim, sensors) if sensors is not None else ()
+        return cls(round(sim.t * 1e9), names, origin, angle, s, v, sim.take_contacts(),
+                   readings)
+
+
+def read_sensors(sim: Simulator, sensors: SensorBank) -> tuple[SensorReading, ...]:
+    """``sensors`` read at ``sim``'s current state."""
+    if not sensors.specs:
+        return ()
+    names, origin, angle = sim.part_poses()
+    outlines = {b.name: b.outlines for b in sim.world.scene.bodies}
+    return sensors.update(names, sim.state.position[sim.part_indices], origin, angle, outlines)
+
+
+def sensor_bank(sim: Simulator) -> SensorBank:
+    """The sensors of ``sim``'s scene, orientations read relative to its track."""
+    w = sim.world
+    track_angle = float(w.base_angle[w.track_index]) if w.track_index is not None else 0.0
+    return SensorBank(sim.scene.sensors, sim.scene.outcomes, track_angle)
 
 
 def record_frame(recorder, frame: Frame) -> None:
@@ -45,6 +66,9 @@ def record_frame(recorder, frame: Frame) -> None:
     recorder.write_contacts(t_ns, c.point, c.normal, c.normal_impulse, c.tangent_impulse,
                             c.body_a, c.body_b)
     recorder.write_track_state(t_ns, frame.names, frame.s, frame.speed)
+    for reading in frame.sensors:
+        recorder.write_sensor(t_ns, reading.name, reading.kind, reading.blocked, reading.count,
+                              reading.passed)
 
 
 def recording_metadata(sim: Simulator) -> dict[str, str]:
@@ -56,7 +80,8 @@ def recording_metadata(sim: Simulator) -> dict[str, str]:
 def open_recorder(sim: Simulator, path: str | os.PathLike, **options):
     """An MCAP recorder for ``sim`` holding the scene metadata and the vibration in force."""
     from feeder_sim.output.recording import McapRecorder
-    recorder = McapRecorder(path, metadata=recording_metadata(sim), **options)
+    recorder = McapRecorder(path, metadata=recording_metadata(sim),
+                            sensors=[(x.name, x.kind) for x in sim.scene.sensors], **options)
     for i in sim.world.driven:
         d = sim.world.drives[i]
         recorder.write_vibration_cmd(int(round(sim.t * 1e9)), d.amplitude_m, d.frequency_hz)

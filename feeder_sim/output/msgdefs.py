@@ -31,6 +31,16 @@ string frame_id
     'rosgraph_msgs/Clock': """\
 builtin_interfaces/Time clock
 """,
+    'std_msgs/Bool': """\
+bool data
+""",
+    'std_msgs/UInt32': """\
+uint32 data
+""",
+    'diagnostic_msgs/KeyValue': """\
+string key
+string value
+""",
     'geometry_msgs/Point': """\
 float64 x
 float64 y

@@ -71,6 +71,19 @@ TOPIC_PART_POSES = '/feeder_sim/part_poses'
 TOPIC_CONTACTS = '/feeder_sim/contacts'
 TOPIC_TRACK_STATE = '/feeder_sim/track_state'
 TOPIC_VIBRATION_CMD = '/vibration_cmd'
+SENSOR_PREFIX = '/feeder_sim/sensors/'
+
+#: the topics of a sensor of each kind: (suffix, ROS 2 message type)
+SENSOR_TOPICS: dict[str, tuple[tuple[str, str], ...]] = {
+    'beam': (('blocked', 'std_msgs/msg/Bool'), ('count', 'std_msgs/msg/UInt32')),
+    'inspection': (('count', 'std_msgs/msg/UInt32'), ('passed', 'diagnostic_msgs/msg/KeyValue')),
+}
+
+
+def sensor_topics(name: str, kind: str) -> dict[str, str]:
+    """Topic -> ROS 2 message type of the sensor ``name`` of ``kind`` (see ``SENSOR_TOPICS``)."""
+    return {f'{SENSOR_PREFIX}{name}/{suffix}': type_name
+            for suffix, type_name in SENSOR_TOPICS[kind]}
 
 #: topic -> ROS 2 message type, in the order the channels are registered.
 TOPICS: dict[str, str] = {
@@ -353,12 +366,14 @@ class McapRecorder:
         metadata: Mapping[str, str] | None = None,
         compression: str = DEFAULT_COMPRESSION,
         flush_interval: float | None = None,
+        sensors: Sequence[tuple[str, str]] = (),
     ):
         """Open ``path`` (truncating it) and write header, schemas and channels.
 
         ``flush_interval`` (wall-clock seconds, optional) also closes the open chunk when it is
         older than that, bounding what a hard kill can lose in slow runs.  ``metadata`` is
-        written as a metadata record named ``feeder_sim``.
+        written as a metadata record named ``feeder_sim``. ``sensors`` ((name, kind) pairs)
+        adds the channels of :func:`sensor_topics` after those of :data:`TOPICS`.
         """
         self._path = os.fspath(path)
         if isinstance(self._path, bytes):
@@ -399,7 +414,10 @@ class McapRecorder:
             self._writer.start(profile='ros2', library=f'feeder_sim {_library_version()}')
             self._channels: dict[str, int] = {}
             schema_ids: dict[str, int] = {}
-            for topic, type_name in TOPICS.items():
+            topics = dict(TOPICS)
+            for name, kind in sensors:
+                topics.update(sensor_topics(name, kind))
+            for topic, type_name in topics.items():
                 if type_name not in schema_ids:
                     schema_ids[type_name] = self._writer.register_schema(
                         name=type_name, encoding='ros2msg',
@@ -535,6 +553,26 @@ class McapRecorder:
         payload = _ENCAPSULATION + _MULTIARRAY_2.pack(
             0, 0, 2, float(amplitude_m), float(frequency_hz))
         self._emit(self._ch_vibration, t_ns, payload)
+
+    def write_sensor(self, t_ns: int, name: str, kind: str, blocked: bool, count: int,
+                     passed: Sequence[tuple[str, str]] = ()) -> None:
+        """One frame of a sensor: std_msgs/Bool ``blocked`` (beam), std_msgs/UInt32 ``count``
+        and a diagnostic_msgs/KeyValue (key: part, value: orientation) per part in
+        ``passed`` (inspection)."""
+        _stamp(t_ns)
+        channel = self._channels.get(f'{SENSOR_PREFIX}{name}/count')
+        if channel is None:
+            raise ValueError(f'no sensor {name!r} was declared when the recorder was opened')
+        if kind == 'beam':
+            self._emit(self._channels[f'{SENSOR_PREFIX}{name}/blocked'], t_ns,
+                       _ENCAPSULATION + bytes([bool(blocked)]))
+        self._emit(channel, t_ns, _ENCAPSULATION + _U32.pack(int(count)))
+        if kind == 'inspection':
+            topic = self._channels[f'{SENSOR_PREFIX}{name}/passed']
+            for part, orientation in passed:
+                key = _cdr_string(part)
+                self._emit(topic, t_ns, b''.join((_ENCAPSULATION, key, _pad(len(key), 4),
+                                                  _cdr_string(orientation))))
 
     def write_metadata(self, name: str, data: Mapping[str, str]) -> None:
         """MCAP metadata record (e.g. the scene YAML text or the solver settings)."""

@@ -31,7 +31,7 @@ import sys
 import threading
 import time
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseArray
 import numpy as np
 from rcl_interfaces.msg import (
@@ -46,21 +46,23 @@ from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.publisher import Publisher
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.signals import SignalHandlerOptions
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState, PointCloud2
-from std_msgs.msg import Float64MultiArray
+from std_msgs.msg import Bool, Float64MultiArray, UInt32
 from std_srvs.srv import SetBool, Trigger
 from visualization_msgs.msg import MarkerArray
 
 from feeder_sim.model.scene import METHODS, SceneError
 from feeder_sim.model.vibration import CommandLimits, parse_command
 from feeder_sim.model.world import DYNAMIC
+from feeder_sim.output import frames
 from feeder_sim.output.frames import Frame, open_recorder, record_frame
 from feeder_sim.output.impulses import part_impulses
-from feeder_sim.output.recording import RecordingError
+from feeder_sim.output.recording import RecordingError, SENSOR_TOPICS
 from feeder_sim.ros import messages as msgs
 from feeder_sim.simulator import Simulator
 
@@ -236,6 +238,18 @@ class SimNode(Node):
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.pub_geometry = self.create_publisher(MarkerArray, '~/geometry', latched)
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        # the scene's sensors: a frame's reading on each topic of its kind (recording.py's
+        # SENSOR_TOPICS); every passing part is a message, none is dropped
+        self.sensors = frames.sensor_bank(self.sim)
+        frames.read_sensors(self.sim, self.sensors)
+        self.pub_sensors: dict[str, dict[str, Publisher]] = {}
+        for spec in self.sensors.specs:
+            types = {'blocked': Bool, 'count': UInt32, 'passed': KeyValue}
+            self.pub_sensors[spec.name] = {
+                suffix: self.create_publisher(types[suffix], f'~/sensors/{spec.name}/{suffix}',
+                                              QoSProfile(depth=100,
+                                                         reliability=ReliabilityPolicy.RELIABLE))
+                for suffix, _ in SENSOR_TOPICS[spec.kind]}
         self.create_subscription(Float64MultiArray, 'vibration_cmd', self._on_vibration_cmd,
                                  QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE),
                                  qos_overriding_options=overridable)
@@ -259,7 +273,7 @@ class SimNode(Node):
         self._namesake_since: float | None = None
         self._namesake_timer = self.create_timer(0.2, self._look_for_namesakes, clock=steady)
         self._publish_geometry()
-        self._publish_frame(Frame.take(self.sim))
+        self._publish_frame(Frame.take(self.sim, self.sensors))
         self.get_logger().info(
             f"scene '{self.sim.scene.name}' ({self.sim.method}, step "
             f'{self.sim.scene.solver.time_step:g} s, {len(self._parts)} parts), '
@@ -310,7 +324,7 @@ class SimNode(Node):
         if not self._advance_to(t_next_ns / _NS):
             return
         self.frames += 1
-        self._publish_frame(Frame.take(self.sim))
+        self._publish_frame(Frame.take(self.sim, self.sensors))
         if self.duration_ns and self.t_ns >= self.duration_ns:
             s, _ = self.sim.track_coordinates()
             names = self.sim.part_poses()[0]
@@ -389,6 +403,13 @@ class SimNode(Node):
             self.pub_track.publish(msgs.track_state(t_ns, frame.names, frame.s, frame.speed))
         if self.pub_markers.get_subscription_count():
             self._publish_markers(frame)
+        for reading in frame.sensors:
+            pubs = self.pub_sensors[reading.name]
+            if 'blocked' in pubs:
+                pubs['blocked'].publish(Bool(data=reading.blocked))
+            pubs['count'].publish(UInt32(data=reading.count))
+            for part, orientation in reading.passed if 'passed' in pubs else ():
+                pubs['passed'].publish(KeyValue(key=part, value=orientation))
         self._record(lambda r: record_frame(r, frame))
 
     def _publish_markers(self, frame: Frame) -> None:
@@ -591,6 +612,8 @@ class SimNode(Node):
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response):
         self.sim.reset()
+        self.sensors.reset()
+        frames.read_sensors(self.sim, self.sensors)
         self._pending_command = None
         self._anchor()
         # the log goes on: a new episode one frame after the last, with the drive restored
@@ -598,7 +621,7 @@ class SimNode(Node):
         for i in self.sim.world.driven[:1]:
             d = self.sim.world.drives[i]
             self._record(lambda r, d=d: r.write_vibration_cmd(0, d.amplitude_m, d.frequency_hz))
-        self._publish_frame(Frame.take(self.sim))
+        self._publish_frame(Frame.take(self.sim, self.sensors))
         response.success = True
         response.message = f"scene '{self.sim.scene.name}' reset to t = 0"
         return response
