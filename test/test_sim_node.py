@@ -360,7 +360,9 @@ def test_the_log_read_by_mcap_ros2_holds_what_the_simulator_computed(graph, tmp_
                      '/feeder_sim/part_poses': 'geometry_msgs/msg/PoseArray',
                      '/feeder_sim/contacts': 'sensor_msgs/msg/PointCloud2',
                      '/feeder_sim/track_state': 'sensor_msgs/msg/JointState',
-                     '/vibration_cmd': 'std_msgs/msg/Float64MultiArray'}
+                     '/vibration_cmd': 'std_msgs/msg/Float64MultiArray',
+                     '/tf': 'tf2_msgs/msg/TFMessage',
+                     '/feeder_sim/geometry': 'visualization_msgs/msg/MarkerArray'}
     poses = [m for m in messages if m.channel.topic == '/feeder_sim/part_poses']
     assert len(poses) == 41                     # the initial frame and 40 steps
     assert [m.log_time_ns for m in poses] == [k * 10_000_000 for k in range(41)]

@@ -6,6 +6,7 @@ with :func:`record_frame`, so a log is the same whichever wrote it.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 import json
 import os
@@ -30,6 +31,10 @@ class Frame:
     speed: np.ndarray            # (n,) speed along the track, m/s
     contacts: ContactReport      # contacts and impulses since the previous frame
     sensors: tuple[SensorReading, ...] = ()   # the scene's sensors, in scene order
+    bodies: tuple[str, ...] = ()              # every body, world order (for transforms)
+    body_origin: np.ndarray | None = None     # (N, 2) their body-frame origins, m
+    body_angle: np.ndarray | None = None      # (N,) rad
+    outlines: Mapping[str, tuple[np.ndarray, ...]] | None = None   # by body, body frame
 
     @classmethod
     def take(cls, sim: Simulator, sensors: SensorBank | None = None) -> Frame:
@@ -38,8 +43,10 @@ class Frame:
         names, origin, angle = sim.part_poses()
         s, v = sim.track_coordinates()
         readings = read_sensors(sim, sensors) if sensors is not None else ()
+        body_origin, body_angle = sim.world.body_frame_pose(sim.state)
+        outlines = {b.name: b.outlines for b in sim.world.scene.bodies}
         return cls(round(sim.t * 1e9), names, origin, angle, s, v, sim.take_contacts(),
-                   readings)
+                   readings, tuple(sim.world.names), body_origin, body_angle, outlines)
 
 
 def read_sensors(sim: Simulator, sensors: SensorBank) -> tuple[SensorReading, ...]:
@@ -66,9 +73,35 @@ def record_frame(recorder, frame: Frame) -> None:
     recorder.write_contacts(t_ns, c.point, c.normal, c.normal_impulse, c.tangent_impulse,
                             c.body_a, c.body_b)
     recorder.write_track_state(t_ns, frame.names, frame.s, frame.speed)
+    if frame.outlines is not None:
+        _record_geometry(recorder, frame)
+        recorder.write_transforms(t_ns, frame.bodies, frame.body_origin, frame.body_angle)
     for reading in frame.sensors:
         recorder.write_sensor(t_ns, reading.name, reading.kind, reading.blocked, reading.count,
                               reading.passed)
+
+
+PART_COLOR = (0.12, 0.47, 0.71, 1.0)      # RGBA
+FIXED_COLOR = (0.5, 0.5, 0.5, 1.0)
+
+
+def _record_geometry(recorder, frame: Frame) -> None:
+    """The outlines of the bodies that are new in this frame; a delete for those gone."""
+    drawn = recorder.outlines_drawn
+    now = set(frame.bodies)
+    new = {n: frame.outlines[n] for n in frame.bodies if n not in drawn}
+    gone = {n: k for n, k in drawn.items() if n not in now}
+    if not new and not gone:
+        return
+    parts = set(frame.names)
+    colors = {n: PART_COLOR if n in parts else FIXED_COLOR for n in new}
+    sizes = [np.ptp(np.vstack(frame.outlines[n]), axis=0).max() for n in frame.names]
+    # as the node draws them: a fortieth of the typical part
+    width = 0.025 * float(np.median(sizes)) if sizes else 1e-3
+    recorder.write_outlines(frame.t_ns, new, colors, width, gone)
+    for n in gone:
+        del drawn[n]
+    drawn.update({n: len(frame.outlines[n]) for n in new})
 
 
 def recording_metadata(sim: Simulator) -> dict[str, str]:

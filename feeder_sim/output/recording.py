@@ -71,6 +71,8 @@ TOPIC_PART_POSES = '/feeder_sim/part_poses'
 TOPIC_CONTACTS = '/feeder_sim/contacts'
 TOPIC_TRACK_STATE = '/feeder_sim/track_state'
 TOPIC_VIBRATION_CMD = '/vibration_cmd'
+TOPIC_TF = '/tf'
+TOPIC_GEOMETRY = '/feeder_sim/geometry'
 SENSOR_PREFIX = '/feeder_sim/sensors/'
 
 #: the topics of a sensor of each kind: (suffix, ROS 2 message type)
@@ -92,6 +94,10 @@ TOPICS: dict[str, str] = {
     TOPIC_CONTACTS: 'sensor_msgs/msg/PointCloud2',
     TOPIC_TRACK_STATE: 'sensor_msgs/msg/JointState',
     TOPIC_VIBRATION_CMD: 'std_msgs/msg/Float64MultiArray',
+    # what a viewer (Foxglove's 3D panel, RViz-style tools) needs to draw the scene by itself:
+    # each body's frame in the world every frame, and each body's outline once, in its frame
+    TOPIC_TF: 'tf2_msgs/msg/TFMessage',
+    TOPIC_GEOMETRY: 'visualization_msgs/msg/MarkerArray',
 }
 
 DEFAULT_COMPRESSION = 'zstd' if _HAVE_ZSTD else 'none'
@@ -206,6 +212,48 @@ _CLOUD_TAIL = struct.Struct('<?3xIII')  # is_bigendian, point_step, row_step, le
 _CLOUD_SIZE = struct.Struct('<II')  # height, width
 _MULTIARRAY_2 = struct.Struct('<III4xdd')  # no dims, data_offset, len(data) = 2, two float64
 _DENSE = b'\x01'
+
+
+class _Cdr:
+    """A CDR body (little endian) written field by field; each field aligned to its size
+    from the start of the body, as the encapsulation header's rules want."""
+
+    __slots__ = ('parts', 'size')
+
+    def __init__(self) -> None:
+        self.parts: list[bytes] = [_ENCAPSULATION]
+        self.size = 0
+
+    def put(self, fmt: struct.Struct, *values, align: int) -> None:
+        pad = -self.size % align
+        if pad:
+            self.parts.append(b'\x00' * pad)
+        data = fmt.pack(*values)
+        self.parts.append(data)
+        self.size += pad + len(data)
+
+    def string(self, text: str) -> None:
+        data = _cdr_string(text)
+        self.put(_U32, len(data) - 4, align=4)
+        self.parts.append(data[4:])
+        self.size += len(data) - 4
+
+    def stamp(self, t_ns: int, frame_id: str) -> None:
+        """A std_msgs/Header."""
+        sec, nanosec = _STAMP.unpack(_stamp(t_ns))
+        self.put(_STAMP, sec, nanosec, align=4)
+        self.string(frame_id)
+
+    def payload(self) -> bytes:
+        return b''.join(self.parts)
+
+
+_I32 = struct.Struct('<i')
+_BOOL = struct.Struct('<?')
+_F64_3 = struct.Struct('<3d')
+_F64_4 = struct.Struct('<4d')
+_F32_4 = struct.Struct('<4f')
+_LINE_STRIP, _ADD, _DELETE = 4, 0, 2
 
 
 class _Frame:
@@ -403,6 +451,9 @@ class McapRecorder:
         self._episode = 0             # index of the running episode (reset count)
         self._log_offset_ns = 0       # log time = simulated time + this (see begin_episode)
         self._last_log_ns = 0
+        # the bodies whose outlines are in the log (name -> outline count), for write_outlines'
+        # callers that draw parts as they come and delete them as they go
+        self.outlines_drawn: dict[str, int] = {}
 
         try:
             self._file = _ChunkFile(self._path)
@@ -573,6 +624,69 @@ class McapRecorder:
                 key = _cdr_string(part)
                 self._emit(topic, t_ns, b''.join((_ENCAPSULATION, key, _pad(len(key), 4),
                                                   _cdr_string(orientation))))
+
+    def write_transforms(self, t_ns: int, names: Sequence[str], origin, angle,
+                         parent: str = 'world') -> None:
+        """tf2_msgs/TFMessage: the frame of each body ``names`` (its scene-file body frame:
+        ``origin`` (n, 2) m and ``angle`` (n,) rad in ``parent``)."""
+        origin = _as_float_array('origin', origin, (2,))
+        angle = _as_float_array('angle', angle, ())
+        if not origin.shape[0] == angle.shape[0] == len(names):
+            raise ValueError(f'{len(names)} names, {origin.shape[0]} origins and '
+                             f'{angle.shape[0]} angles')
+        body = _Cdr()
+        body.put(_U32, len(names), align=4)
+        for name, (x, y), a in zip(names, origin.tolist(), angle.tolist(), strict=True):
+            body.stamp(t_ns, parent)
+            body.string(name)
+            body.put(_F64_3, x, y, 0.0, align=8)
+            body.put(_F64_4, 0.0, 0.0, np.sin(0.5 * a), np.cos(0.5 * a), align=8)
+        self._emit(self._channels[TOPIC_TF], t_ns, body.payload())
+
+    def write_outlines(self, t_ns: int, outlines: Mapping[str, Sequence[np.ndarray]],
+                       colors: Mapping[str, tuple[float, float, float, float]],
+                       line_width_m: float, deleted: Mapping[str, int] | None = None) -> None:
+        """visualization_msgs/MarkerArray: each body's outlines (body frame, m) as closed
+        LINE_STRIP markers in the body's own frame (``frame_locked``: they move with the
+        frames of :meth:`write_transforms`), namespace = body, id = outline index; and a
+        DELETE for each of the ``deleted`` bodies' outlines (name -> how many it had)."""
+        markers = []
+        for name, polygons in outlines.items():
+            for k, polygon in enumerate(polygons):
+                markers.append((name, k, _ADD, np.asarray(polygon, dtype=float), colors[name]))
+        for name, count in (deleted or {}).items():
+            markers += [(name, k, _DELETE, np.zeros((0, 2)), (0.0, 0.0, 0.0, 0.0))
+                        for k in range(count)]
+        body = _Cdr()
+        body.put(_U32, len(markers), align=4)
+        for name, k, action, polygon, rgba in markers:
+            body.stamp(t_ns, name)
+            body.string(name)                                  # ns
+            body.put(_I32, k, align=4)
+            body.put(_I32, _LINE_STRIP, align=4)
+            body.put(_I32, action, align=4)
+            body.put(_F64_3, 0.0, 0.0, 0.0, align=8)           # pose: the body frame itself
+            body.put(_F64_4, 0.0, 0.0, 0.0, 1.0, align=8)
+            body.put(_F64_3, float(line_width_m), 0.0, 0.0, align=8)   # scale.x: line width
+            body.put(_F32_4, *rgba, align=4)
+            body.put(_STAMP, 0, 0, align=4)                    # lifetime: forever
+            body.put(_BOOL, True, align=1)                     # frame_locked
+            closed = np.vstack([polygon, polygon[:1]]) if len(polygon) else polygon
+            body.put(_U32, len(closed), align=4)
+            for x, y in closed.tolist():
+                body.put(_F64_3, x, y, 0.0, align=8)
+            body.put(_U32, 0, align=4)                         # colors
+            body.string('')                                    # texture_resource
+            body.stamp(0, '')                                  # texture: header, format, data
+            body.string('')
+            body.put(_U32, 0, align=4)
+            body.put(_U32, 0, align=4)                         # uv_coordinates
+            body.string('')                                    # text
+            body.string('')                                    # mesh_resource
+            body.string('')                                    # mesh_file: filename, data
+            body.put(_U32, 0, align=4)
+            body.put(_BOOL, False, align=1)                    # mesh_use_embedded_materials
+        self._emit(self._channels[TOPIC_GEOMETRY], t_ns, body.payload())
 
     def write_metadata(self, name: str, data: Mapping[str, str]) -> None:
         """MCAP metadata record (e.g. the scene YAML text or the solver settings)."""

@@ -1,0 +1,114 @@
+"""The log draws itself: every body's frame in /tf at every frame and every body's outline once in
+/feeder_sim/geometry (in its own frame), read back with mcap_ros2 and with rerun's own MCAP
+import."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+import subprocess
+import sys
+
+from mcap_ros2.reader import read_ros2_messages
+import numpy as np
+import pytest
+from rerun.chunk import RrdReader
+from visualization_msgs.msg import Marker
+
+from feeder_sim.model.scene import load_scene
+from feeder_sim.run import run
+from feeder_sim.simulator import Simulator
+
+DATA = Path(__file__).parent / 'data'
+
+
+@pytest.fixture(scope='module')
+def track_log(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp('viewer') / 'ten.mcap'
+    run(Simulator('track_ten_boxes'), 0.3, record=path)
+    return path
+
+
+def _messages(path: Path, topic: str) -> list:
+    return [(m.log_time_ns, m.ros_msg) for m in read_ros2_messages(str(path), topics=[topic])]
+
+
+def _yaw(q) -> float:
+    return 2.0 * math.atan2(q.z, q.w)
+
+
+def test_every_frame_places_every_body_and_the_parts_where_the_poses_say(track_log):
+    scene = load_scene('track_ten_boxes')
+    names = [b.name for b in scene.bodies]
+    parts = [b.name for b in scene.bodies if b.type == 'dynamic']
+    tf = _messages(track_log, '/tf')
+    poses = dict(_messages(track_log, '/feeder_sim/part_poses'))
+    assert len(tf) == len(poses) == 30
+    for t, msg in tf:
+        assert [x.child_frame_id for x in msg.transforms] == names
+        assert {x.header.frame_id for x in msg.transforms} == {'world'}
+        by_name = {x.child_frame_id: x for x in msg.transforms}
+        for name, pose in zip(parts, poses[t].poses, strict=True):
+            tr = by_name[name].transform
+            assert (tr.translation.x, tr.translation.y) == (pose.position.x, pose.position.y)
+            assert _yaw(tr.rotation) == pytest.approx(_yaw(pose.orientation), abs=1e-12)
+    # the track moves with its drive: its frame is that of the simulator at each frame
+    sim = Simulator('track_ten_boxes')
+    track = names.index(scene.track)
+    for k, (_, msg) in enumerate(tf[:5], start=1):
+        sim.advance_to(k * 0.01)
+        origin, angle = sim.world.body_frame_pose(sim.state)
+        x = msg.transforms[track].transform
+        assert (x.translation.x, x.translation.y) == pytest.approx(tuple(origin[track]),
+                                                                   abs=1e-15)
+        assert _yaw(x.rotation) == pytest.approx(angle[track], abs=1e-15)
+
+
+def test_each_outline_is_drawn_once_in_its_own_frame(track_log):
+    scene = load_scene('track_ten_boxes')
+    geometry = _messages(track_log, '/feeder_sim/geometry')
+    assert len(geometry) == 1
+    markers = geometry[0][1].markers
+    assert [m.ns for m in markers] == [b.name for b in scene.bodies for _ in b.outlines]
+    for m, (body, k) in zip(markers, [(b, k) for b in scene.bodies
+                                      for k in range(len(b.outlines))], strict=True):
+        assert m.header.frame_id == body.name and m.frame_locked and m.id == k
+        assert m.type == Marker.LINE_STRIP and m.action == Marker.ADD and m.scale.x > 0
+        outline = np.asarray(body.outlines[k])
+        points = np.array([[p.x, p.y] for p in m.points])
+        assert np.array_equal(points, np.vstack([outline, outline[:1]]))   # closed, exact
+
+
+def test_parts_that_come_are_drawn_and_parts_that_go_are_deleted(tmp_path):
+    log = tmp_path / 'fed.mcap'
+    run(Simulator(str(DATA / 'fed_track.yaml')), 2.0, record=log)
+    drawn: dict[str, bool] = {}
+    names = {t: list(m.name) for t, m in _messages(log, '/feeder_sim/track_state')}
+    tf = dict(_messages(log, '/tf'))
+    for t, msg in _messages(log, '/feeder_sim/geometry'):
+        for m in msg.markers:
+            drawn[m.ns] = m.action == Marker.ADD
+        # after each update, exactly the bodies of that frame are drawn
+        assert {n for n, on in drawn.items() if on} == {
+            x.child_frame_id for x in tf[t].transforms}
+    assert any(not on for on in drawn.values())           # a part left
+    assert sum(1 for n in drawn if n.startswith('box_')) >= 3
+    assert set(names[max(names)]) <= {n for n, on in drawn.items() if on}
+
+
+def test_rerun_reads_the_frames_as_transforms(track_log, tmp_path):
+    rrd = tmp_path / 'raw.rrd'
+    rerun = Path(sys.executable).with_name('rerun')
+    subprocess.run([str(rerun), 'mcap', 'convert', str(track_log), '-o', str(rrd),
+                    '--timeline-type', 'duration'], check=True, capture_output=True, timeout=120)
+    components: dict[str, set] = {}
+    children: set = set()
+    for chunk in RrdReader(str(rrd)).stream().to_chunks():
+        batch = chunk.to_record_batch()
+        components.setdefault(chunk.entity_path, set()).update(batch.schema.names)
+        if chunk.entity_path == '/tf' and 'Transform3D:child_frame' in batch.schema.names:
+            for row in batch.column('Transform3D:child_frame').to_pylist():
+                children.update(row or [])
+    assert {'Transform3D:translation', 'Transform3D:quaternion'} <= components['/tf']
+    assert children == {b.name for b in load_scene('track_ten_boxes').bodies}
+    assert any('MarkerArray' in c for c in components['/feeder_sim/geometry'])
