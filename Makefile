@@ -17,14 +17,18 @@ $(PY):
 	python3 -m venv $(VENV)
 	$(PIP) install --upgrade pip setuptools wheel
 
-$(RUN_STAMP): setup.py package.xml | $(PY)
-	@echo "installing feeder_sim with the ROS 2 wheels and rerun into $(VENV) (about a minute)"
-	$(PIP) install -e '.[ros,replay]'
+IFC := $(wildcard interfaces/build.py interfaces/feeder_sim_interfaces/*.* interfaces/feeder_sim_interfaces/*/*)
+
+$(RUN_STAMP): setup.py package.xml $(IFC) | $(PY)
+	@echo "installing feeder_sim with the ROS 2 wheels and rerun into $(VENV), then building its part services (a minute or two)"
+	$(PIP) install -e '.[ros,replay,interfaces]'
+	$(PY) interfaces/build.py
 	touch $(RUN_STAMP)
 
-$(TEST_STAMP): setup.py package.xml | $(PY)
-	@echo "installing feeder_sim with the ROS 2 wheels, rerun and the test tools into $(VENV)"
+$(TEST_STAMP): setup.py package.xml $(IFC) | $(PY)
+	@echo "installing feeder_sim with the ROS 2 wheels, rerun and the test tools into $(VENV), then building its part services"
 	$(PIP) install -e '.[test]'
+	$(PY) interfaces/build.py
 	touch $(TEST_STAMP) $(RUN_STAMP)
 
 setup: $(RUN_STAMP)
@@ -41,7 +45,7 @@ run: $(RUN_STAMP)
 	$(VENV)/bin/feeder-sim replay out/track_one_box.mcap --rrd out/track_one_box.rrd --no-viewer
 
 test: $(TEST_STAMP)
-	$(VENV)/bin/ruff check feeder_sim test benchmarks
+	$(VENV)/bin/ruff check feeder_sim test benchmarks interfaces
 	$(PY) -m pytest -q test
 
 bench: $(TEST_STAMP)

