@@ -269,7 +269,7 @@ class Feed:
         shares = np.array([share for _, _, share in src.orientations])
         _, angle, _ = src.orientations[rng.choice(len(shares), p=shares / shares.sum())]
         if math.isnan(angle):
-            angle = next(b for b in sim.scene.bodies if b.name == src.template).pose[2]
+            angle = sim.template_body(src.template).pose[2]
         number = self.added[k] + 1
         while f'{src.template}_{number}' in sim.world.names:
             number += 1
@@ -475,16 +475,20 @@ class Simulator:
         its body frame at ``pose`` ([x, y, angle], m and rad) moving at ``velocity`` ([vx, vy,
         omega], m/s and rad/s). Checked as a scene file is (SceneError: a taken name, a pose
         inside another body, ...)."""
-        # the starting scene's parts too: a source's template may itself have left by a sink
+        body = replace(self.template_body(template), name=name, pose=np.asarray(pose, float),
+                       velocity=np.asarray(velocity, float))
+        self._rebuild([*self._now(), body], [*range(self.world.n), None])
+
+    def template_body(self, template: str):
+        """The dynamic body ``template`` of the scene now or as it started: a template may
+        itself have left (a sink, a part taken away) and still be copied."""
         found = [b for b in (*self.scene.bodies, *self._scene_at_start.bodies)
                  if b.name == template]
         if not found or found[0].type != 'dynamic':
             parts = ', '.join(self.world.names[i] for i in self.part_indices)
             raise ValueError(f'template must name a dynamic body of the scene ({parts}), got '
                              f'{template!r}')
-        body = replace(found[0], name=name, pose=np.asarray(pose, float),
-                       velocity=np.asarray(velocity, float))
-        self._rebuild([*self._now(), body], [*range(self.world.n), None])
+        return found[0]
 
     def remove_part(self, name: str) -> None:
         """The dynamic part ``name`` leaves the simulation (a sink, a part taken away)."""

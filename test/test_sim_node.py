@@ -748,3 +748,47 @@ def test_part_services_add_place_and_remove_parts_at_the_next_frame(graph, resti
                                                              topics=['/feeder_sim/geometry'])]
         for m in msg.markers if m.ns in ('second', 'box_1')]
     assert actions == [('second', 0), ('second', 2), ('box_1', 0)]
+
+
+def test_the_example_controller_keeps_the_queue_between_its_thresholds_for_a_minute(
+        graph, tmp_path):
+    # examples/queue_controller.py against the node on config/queue_cell.yaml: after the
+    # queue first fills, every frame holds 1 to 5 boxes in the queue zone (x > 0.10 m, the
+    # stop at 0.19 m, a box 0.02 m long), the drive switches off and on, the robot picks.
+    # The frames are read from the node's log (every one; a subscriber of a node running
+    # as fast as it can may be passed by its publisher's history).
+    import importlib.util
+    spec = importlib.util.spec_from_file_location(
+        'queue_controller', Path(__file__).parents[1] / 'examples' / 'queue_controller.py')
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    log = tmp_path / 'cell.mcap'
+    node = graph.start(scene='queue_cell', real_time_factor=0.0, duration=60.0,
+                       publish_rate=50.0, start_paused=True, record_path=str(log))
+    controller = example.QueueController(context=graph.context)
+    graph.executor.add_node(controller)
+    try:
+        graph.spin_until(lambda: controller.pick.service_is_ready()
+                         and all(p.get_subscription_count() for p in (
+                             *[node.pub_sensors[n]['blocked'] for n in ('queue_full',
+                                                                        'at_stop')],
+                             node.pub_track, node.pub_clock)), timeout_s=60)
+        assert graph.call(SetBool, '/feeder_sim/pause', SetBool.Request(data=False)).success
+        graph.spin_until(lambda: node.done, timeout_s=600)
+        graph.spin_for(0.3)
+    finally:
+        graph.executor.remove_node(controller)
+        controller.destroy_node()
+    node.close()
+    poses = [m.ros_msg for m in read_ros2_messages(str(log), topics=['/feeder_sim/part_poses'])]
+    assert len(poses) == 3001
+    queue = [(_ns(m.header.stamp) / 1e9, sum(p.position.x > 0.10 for p in m.poses))
+             for m in poses]
+    filled = next(t for t, q in queue if q >= 3)
+    held = [q for t, q in queue if t > filled + 1.0]
+    assert filled < 20.0 and 1 <= min(held) and max(held) <= 5
+    offs = [t for t, on in controller.switches if not on]
+    assert len(offs) >= 5 and len(controller.switches) >= 9
+    assert len(controller.picks) >= 20                       # at most one per 2 s: 30
+    assert all(p.position.x < 0.19 for m in poses for p in m.poses)   # none past the stop
+    assert node.sim.t == pytest.approx(60.0, abs=1e-9)
