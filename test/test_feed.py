@@ -109,3 +109,18 @@ def test_a_rate_is_one_over_the_interval():
     del data['sources'][0]['interval']
     data['sources'][0]['rate'] = 2.0
     assert parse_scene(data).sources == parse_scene(FED).sources
+
+
+def test_a_source_goes_on_after_its_template_part_was_taken_away():
+    # the template's own part removed (a robot took it): later arrivals still copy its shape
+    # and, with no orientations drawn, its starting angle
+    data = copy.deepcopy(RAIN)
+    data['sources'][0].pop('orientations')
+    data['bodies'][0]['pose'] = [2.0, 1.0, 0.3]
+    sim = Simulator(parse_scene(data))
+    sim.remove_part('drop')
+    sim.advance_to(0.35)
+    names, _, angle = sim.part_poses()
+    assert names == ('drop_1', 'drop_2')                        # at 0.1 and 0.3 s
+    assert angle[-1] == pytest.approx(0.3, abs=1e-12)            # just arrived, not turned
+    assert sim.feed.counts()['added'] == 2
