@@ -26,7 +26,7 @@ def test_run_writes_mcap_summary_and_plot(tmp_path):
     assert {t: len(v) for t, v in msgs.items()} == {
         '/clock': 10, '/feeder_sim/part_poses': 10, '/feeder_sim/contacts': 10,
         '/feeder_sim/track_state': 10, '/vibration_cmd': 1, '/tf': 10,
-        '/feeder_sim/geometry': 1}
+        '/feeder_sim/geometry': 1, '/feeder_sim/part_impulses': 10}
     stamps = [m.ros_msg.header.stamp for m in msgs['/feeder_sim/part_poses']]
     assert [s.sec * 10**9 + s.nanosec for s in stamps] == [20_000_000 * k for k in range(1, 11)]
     assert list(msgs['/vibration_cmd'][0].ros_msg.data) == pytest.approx([3.5e-4, 50.0])

@@ -86,7 +86,8 @@ def expected_counts(frames):
             '/feeder_sim/contacts': len(frames), '/feeder_sim/track_state': len(frames),
             '/vibration_cmd': n_vib,
             # written by frames.record_frame, not by these direct writes
-            '/tf': 0, '/feeder_sim/geometry': 0}
+            '/tf': 0, '/feeder_sim/geometry': 0, '/feeder_sim/part_impulses': 0,
+            '/diagnostics': 0}
 
 
 def contact_array(f):

@@ -362,7 +362,8 @@ def test_the_log_read_by_mcap_ros2_holds_what_the_simulator_computed(graph, tmp_
                      '/feeder_sim/track_state': 'sensor_msgs/msg/JointState',
                      '/vibration_cmd': 'std_msgs/msg/Float64MultiArray',
                      '/tf': 'tf2_msgs/msg/TFMessage',
-                     '/feeder_sim/geometry': 'visualization_msgs/msg/MarkerArray'}
+                     '/feeder_sim/geometry': 'visualization_msgs/msg/MarkerArray',
+                     '/feeder_sim/part_impulses': 'sensor_msgs/msg/PointCloud2'}
     poses = [m for m in messages if m.channel.topic == '/feeder_sim/part_poses']
     assert len(poses) == 41                     # the initial frame and 40 steps
     assert [m.log_time_ns for m in poses] == [k * 10_000_000 for k in range(41)]
@@ -400,9 +401,10 @@ def test_same_commands_at_the_same_simulated_times_give_the_same_log(tmp_path):
     assert logs[0] == logs[1]
 
 
-def test_diagnostics_report_pacing_and_solver_health(graph):
+def test_diagnostics_report_pacing_and_solver_health(graph, tmp_path):
     diagnostics = graph.listen(DiagnosticArray, '/diagnostics')
-    node = graph.start(real_time_factor=0.0, diagnostics_period=0.2)
+    log = tmp_path / 'diagnostics.mcap'
+    node = graph.start(real_time_factor=0.0, diagnostics_period=0.2, record_path=str(log))
     graph.spin_until(lambda: len(diagnostics) >= 3)
     status = diagnostics[-1].status[0]
     values = {kv.key: kv.value for kv in status.values}
@@ -423,6 +425,21 @@ def test_diagnostics_report_pacing_and_solver_health(graph):
     assert status.level == DiagnosticStatus.ERROR
     assert status.message.startswith('3 contact LCPs answered without friction')
     assert {kv.key: kv.value for kv in status.values}['frictionless_answers'] == '3'
+    # the log holds what was published, stamped with the simulated time it was sent at
+    node.close()
+    logged = [m.ros_msg for m in read_ros2_messages(str(log), topics=['/diagnostics'])]
+    published = {_ns(d.header.stamp): d.status[0] for d in diagnostics}
+    assert len(logged) >= len(published) >= 4
+    for d in logged:
+        status = d.status[0]
+        if _ns(d.header.stamp) in published:
+            sent = published[_ns(d.header.stamp)]
+            assert (status.level, status.name, status.message) == (
+                sent.level[0] if isinstance(sent.level, bytes) else sent.level, sent.name,
+                sent.message)
+            assert [(kv.key, kv.value) for kv in status.values] == [
+                (kv.key, kv.value) for kv in sent.values]
+    assert logged[-1].status[0].level == 2                       # ERROR
 
 
 def test_a_real_time_factor_not_reached_is_a_warning_logged_once(graph, capfd):

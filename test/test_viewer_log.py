@@ -112,3 +112,24 @@ def test_rerun_reads_the_frames_as_transforms(track_log, tmp_path):
     assert {'Transform3D:translation', 'Transform3D:quaternion'} <= components['/tf']
     assert children == {b.name for b in load_scene('track_ten_boxes').bodies}
     assert any('MarkerArray' in c for c in components['/feeder_sim/geometry'])
+
+
+def test_part_impulses_in_the_log_carry_the_weight_of_parts_sliding_without_friction(tmp_path):
+    # two boxes of 10 g slide on a frictionless floor: every frame of 10 ms the floor gives
+    # each m g dt = 9.81e-4 N s straight up and nothing along it, at the centre of mass
+    log = tmp_path / 'slide.mcap'
+    run(Simulator(str(DATA / 'sensor_slide.yaml')), 0.3, record=log)
+    clouds = _messages(log, '/feeder_sim/part_impulses')
+    poses = dict(_messages(log, '/feeder_sim/part_poses'))
+    assert len(clouds) == 30
+    for t, cloud in clouds:
+        rows = np.frombuffer(bytes(cloud.data), dtype=np.dtype({
+            'names': [f.name for f in cloud.fields],
+            'formats': ['<f4' if f.datatype == 7 else '<u4' for f in cloud.fields],
+            'offsets': [f.offset for f in cloud.fields], 'itemsize': cloud.point_step}))
+        assert rows['part'].tolist() == [0, 1] and (rows['contacts'] >= 1).all()
+        assert rows['impulse_y'] == pytest.approx([0.01 * 9.81 * 0.01] * 2, rel=1e-5)
+        assert np.abs(rows['impulse_x']).max() <= 1e-9
+        for row, pose in zip(rows, poses[t].poses, strict=True):
+            assert (row['x'], row['y']) == pytest.approx(
+                (pose.position.x, pose.position.y), abs=1e-7)     # float32

@@ -15,6 +15,7 @@ import numpy as np
 
 from feeder_sim import __version__
 from feeder_sim.model.scene import scene_to_dict
+from feeder_sim.output.impulses import part_impulses, PartImpulses
 from feeder_sim.output.sensors import SensorBank, SensorReading
 from feeder_sim.simulator import ContactReport, Simulator
 
@@ -35,6 +36,8 @@ class Frame:
     body_origin: np.ndarray | None = None     # (N, 2) their body-frame origins, m
     body_angle: np.ndarray | None = None      # (N,) rad
     outlines: Mapping[str, tuple[np.ndarray, ...]] | None = None   # by body, body frame
+    part_com: np.ndarray | None = None        # (n, 2) the parts' centres of mass, m
+    impulses: PartImpulses | None = None      # the contacts' impulses totalled per part
 
     @classmethod
     def take(cls, sim: Simulator, sensors: SensorBank | None = None) -> Frame:
@@ -45,8 +48,11 @@ class Frame:
         readings = read_sensors(sim, sensors) if sensors is not None else ()
         body_origin, body_angle = sim.world.body_frame_pose(sim.state)
         outlines = {b.name: b.outlines for b in sim.world.scene.bodies}
-        return cls(round(sim.t * 1e9), names, origin, angle, s, v, sim.take_contacts(),
-                   readings, tuple(sim.world.names), body_origin, body_angle, outlines)
+        contacts = sim.take_contacts()
+        parts = sim.part_indices
+        return cls(round(sim.t * 1e9), names, origin, angle, s, v, contacts, readings,
+                   tuple(sim.world.names), body_origin, body_angle, outlines,
+                   sim.state.position[parts], part_impulses(contacts, parts, sim.state.position))
 
 
 def read_sensors(sim: Simulator, sensors: SensorBank) -> tuple[SensorReading, ...]:
@@ -76,6 +82,10 @@ def record_frame(recorder, frame: Frame) -> None:
     if frame.outlines is not None:
         _record_geometry(recorder, frame)
         recorder.write_transforms(t_ns, frame.bodies, frame.body_origin, frame.body_angle)
+    if frame.impulses is not None:
+        p = frame.impulses
+        recorder.write_part_impulses(t_ns, frame.part_com, p.impulse, p.angular_impulse,
+                                     p.normal_impulse, p.contacts)
     for reading in frame.sensors:
         recorder.write_sensor(t_ns, reading.name, reading.kind, reading.blocked, reading.count,
                               reading.passed)

@@ -173,6 +173,21 @@ bool mesh_use_embedded_materials
     'visualization_msgs/MarkerArray': """\
 Marker[] markers
 """,
+    'diagnostic_msgs/DiagnosticStatus': """\
+byte OK=0
+byte WARN=1
+byte ERROR=2
+byte STALE=3
+byte level
+string name
+string message
+string hardware_id
+KeyValue[] values
+""",
+    'diagnostic_msgs/DiagnosticArray': """\
+std_msgs/Header header
+DiagnosticStatus[] status
+""",
     'std_msgs/MultiArrayDimension': """\
 string label
 uint32 size

@@ -72,6 +72,8 @@ TOPIC_CONTACTS = '/feeder_sim/contacts'
 TOPIC_TRACK_STATE = '/feeder_sim/track_state'
 TOPIC_VIBRATION_CMD = '/vibration_cmd'
 TOPIC_TF = '/tf'
+TOPIC_PART_IMPULSES = '/feeder_sim/part_impulses'
+TOPIC_DIAGNOSTICS = '/diagnostics'
 TOPIC_GEOMETRY = '/feeder_sim/geometry'
 SENSOR_PREFIX = '/feeder_sim/sensors/'
 
@@ -98,6 +100,9 @@ TOPICS: dict[str, str] = {
     # each body's frame in the world every frame, and each body's outline once, in its frame
     TOPIC_TF: 'tf2_msgs/msg/TFMessage',
     TOPIC_GEOMETRY: 'visualization_msgs/msg/MarkerArray',
+    TOPIC_PART_IMPULSES: 'sensor_msgs/msg/PointCloud2',
+    # the node's health, as it published it (feeder-sim run has none to write)
+    TOPIC_DIAGNOSTICS: 'diagnostic_msgs/msg/DiagnosticArray',
 }
 
 DEFAULT_COMPRESSION = 'zstd' if _HAVE_ZSTD else 'none'
@@ -119,6 +124,22 @@ CONTACT_FIELDS: tuple[tuple[str, int, int], ...] = (
     ('body_b', 32, _UINT32),
 )
 CONTACT_POINT_STEP = 36
+
+#: (name, byte offset, PointField datatype) of each field of a part's impulse point: at the
+#: centre of mass, the frame's totals over the part's contacts (N s, N m s), how many
+#: contacts and the part's index in the frame's poses.
+PART_IMPULSE_FIELDS: tuple[tuple[str, int, int], ...] = (
+    ('x', 0, _FLOAT32),
+    ('y', 4, _FLOAT32),
+    ('z', 8, _FLOAT32),
+    ('impulse_x', 12, _FLOAT32),
+    ('impulse_y', 16, _FLOAT32),
+    ('angular_impulse', 20, _FLOAT32),
+    ('normal_impulse', 24, _FLOAT32),
+    ('contacts', 28, _UINT32),
+    ('part', 32, _UINT32),
+)
+PART_IMPULSE_STEP = 36
 
 #: numpy dtype of one contact point in PointCloud2.data (for decoding logs).
 CONTACT_POINT_DTYPE = np.dtype({
@@ -192,11 +213,11 @@ def _stamp(t_ns: int) -> bytes:
     return _STAMP.pack(sec, nanosec)
 
 
-def _pointfield_block() -> bytes:
-    """The `fields` sequence of the contact PointCloud2; starts at a 4-aligned offset."""
-    parts = [_U32.pack(len(CONTACT_FIELDS))]
+def _pointfield_block(fields: tuple[tuple[str, int, int], ...]) -> bytes:
+    """The `fields` sequence of a PointCloud2; starts at a 4-aligned offset."""
+    parts = [_U32.pack(len(fields))]
     size = 4
-    for name, offset, code in CONTACT_FIELDS:
+    for name, offset, code in fields:
         name_bytes = _cdr_string(name)
         parts.append(name_bytes)
         size += len(name_bytes)
@@ -207,7 +228,8 @@ def _pointfield_block() -> bytes:
     return b''.join(parts)
 
 
-_POINTFIELDS = _pointfield_block()
+_POINTFIELDS = _pointfield_block(CONTACT_FIELDS)
+_PART_POINTFIELDS = _pointfield_block(PART_IMPULSE_FIELDS)
 _CLOUD_TAIL = struct.Struct('<?3xIII')  # is_bigendian, point_step, row_step, len(data)
 _CLOUD_SIZE = struct.Struct('<II')  # height, width
 _MULTIARRAY_2 = struct.Struct('<III4xdd')  # no dims, data_offset, len(data) = 2, two float64
@@ -570,6 +592,53 @@ class McapRecorder:
             _CLOUD_TAIL.pack(False, CONTACT_POINT_STEP, size, size), cloud.tobytes(), _DENSE,
         ))
         self._emit(self._ch_contacts, t_ns, payload)
+
+    def write_part_impulses(self, t_ns: int, centre_of_mass, impulse, angular_impulse,
+                            normal_impulse, contacts, frame_id: str = 'world') -> None:
+        """sensor_msgs/PointCloud2 with one point per part (see :data:`PART_IMPULSE_FIELDS`;
+        arrays in the frame's part order)."""
+        stamp = _stamp(t_ns)
+        com = _as_float_array('centre_of_mass', centre_of_mass, (2,))
+        count = com.shape[0]
+        impulse = _as_float_array('impulse', impulse, (2,))
+        angular = _as_float_array('angular_impulse', angular_impulse, ())
+        normal = _as_float_array('normal_impulse', normal_impulse, ())
+        if not impulse.shape[0] == angular.shape[0] == normal.shape[0] == count:
+            raise ValueError(f'impulse arrays have {impulse.shape[0]}, {angular.shape[0]}, '
+                             f'{normal.shape[0]} rows for {count} parts')
+        contacts = _as_index_array('contacts', contacts, count)
+        cloud = np.zeros((count, 9), dtype='<f4')
+        cloud[:, 0:2] = com
+        cloud[:, 3:5] = impulse
+        cloud[:, 5] = angular
+        cloud[:, 6] = normal
+        ids = cloud.view('<u4')
+        ids[:, 7] = contacts
+        ids[:, 8] = np.arange(count)
+        size = count * PART_IMPULSE_STEP
+        payload = b''.join((
+            _ENCAPSULATION, stamp, self._frame(frame_id).padded, _CLOUD_SIZE.pack(1, count),
+            _PART_POINTFIELDS, _CLOUD_TAIL.pack(False, PART_IMPULSE_STEP, size, size),
+            cloud.tobytes(), _DENSE,
+        ))
+        self._emit(self._channels[TOPIC_PART_IMPULSES], t_ns, payload)
+
+    def write_diagnostics(self, t_ns: int, name: str, level: int, message: str,
+                          values: Sequence[tuple[str, str]], hardware_id: str = 'feeder_sim'
+                          ) -> None:
+        """diagnostic_msgs/DiagnosticArray with one status (``level`` 0 OK, 1 WARN, 2 ERROR)."""
+        body = _Cdr()
+        body.stamp(t_ns, '')
+        body.put(_U32, 1, align=4)
+        body.put(struct.Struct('<B'), int(level), align=1)
+        body.string(name)
+        body.string(message)
+        body.string(hardware_id)
+        body.put(_U32, len(values), align=4)
+        for key, value in values:
+            body.string(key)
+            body.string(value)
+        self._emit(self._channels[TOPIC_DIAGNOSTICS], t_ns, body.payload())
 
     def write_track_state(self, t_ns: int, names: Sequence[str], position,
                           velocity=None) -> None:

@@ -2,8 +2,9 @@
 
 Everything here is stamped with simulated time (integer nanoseconds) and drawn in the plane
 z = 0 of frame ``world``. The contact cloud has the same fields and layout as the one the MCAP
-recorder writes (:data:`feeder_sim.output.recording.CONTACT_FIELDS`), so a subscriber and a log
-reader decode them the same way.
+recorder writes (:data:`feeder_sim.output.recording.CONTACT_FIELDS`), and so has the part
+impulse cloud (``PART_IMPULSE_FIELDS``), so a subscriber and a log reader decode them the same
+way.
 """
 
 from __future__ import annotations
@@ -22,23 +23,15 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from feeder_sim.model.world import perp
 from feeder_sim.output.impulses import PartImpulses
-from feeder_sim.output.recording import CONTACT_FIELDS, CONTACT_POINT_STEP
+from feeder_sim.output.recording import (
+    CONTACT_FIELDS,
+    CONTACT_POINT_STEP,
+    PART_IMPULSE_FIELDS,
+    PART_IMPULSE_STEP,
+)
 
 _NS = 1_000_000_000
 
-#: (name, byte offset, PointField datatype) of the per-part impulse totals.
-PART_IMPULSE_FIELDS: tuple[tuple[str, int, int], ...] = (
-    ('x', 0, PointField.FLOAT32),
-    ('y', 4, PointField.FLOAT32),
-    ('z', 8, PointField.FLOAT32),
-    ('impulse_x', 12, PointField.FLOAT32),
-    ('impulse_y', 16, PointField.FLOAT32),
-    ('angular_impulse', 20, PointField.FLOAT32),
-    ('normal_impulse', 24, PointField.FLOAT32),
-    ('contacts', 28, PointField.UINT32),
-    ('part', 32, PointField.UINT32),
-)
-PART_IMPULSE_STEP = 36
 
 
 def stamp(t_ns: int) -> Time:
@@ -209,12 +202,16 @@ def marker_array(markers: list[Marker]) -> MarkerArray:
 
 # -- diagnostics -----------------------------------------------------------------------------
 
+def key_values(values: dict[str, object]) -> list[tuple[str, str]]:
+    """Diagnostic values as key/value strings (floats to 6 significant digits)."""
+    return [(k, f'{v:.6g}' if isinstance(v, float) else str(v)) for k, v in values.items()]
+
+
 def diagnostics(t_ns: int, name: str, level: bytes, message: str,
                 values: dict[str, object]) -> DiagnosticArray:
     """A one-status DiagnosticArray; ``level`` is ``DiagnosticStatus.OK``, ``WARN``, ...;
     ``values`` become key/value strings."""
     status = DiagnosticStatus(level=level, name=name, message=message,
                               hardware_id='feeder_sim')
-    status.values = [KeyValue(key=k, value=f'{v:.6g}' if isinstance(v, float) else str(v))
-                     for k, v in values.items()]
+    status.values = [KeyValue(key=k, value=v) for k, v in key_values(values)]
     return DiagnosticArray(header=header(t_ns, ''), status=[status])

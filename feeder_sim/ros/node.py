@@ -61,7 +61,6 @@ from feeder_sim.model.vibration import CommandLimits, parse_command
 from feeder_sim.model.world import DYNAMIC
 from feeder_sim.output import frames
 from feeder_sim.output.frames import Frame, open_recorder, record_frame
-from feeder_sim.output.impulses import part_impulses
 from feeder_sim.output.recording import RecordingError, SENSOR_TOPICS
 from feeder_sim.ros import messages as msgs
 from feeder_sim.simulator import Simulator
@@ -397,9 +396,9 @@ class SimNode(Node):
                                                    self.frame_id))
         if self.pub_contacts.get_subscription_count():
             self.pub_contacts.publish(msgs.contact_cloud(t_ns, contacts, self.frame_id))
-        if self.pub_impulses.get_subscription_count():
-            totals = part_impulses(contacts, self._parts, com)
-            self.pub_impulses.publish(msgs.part_impulse_cloud(t_ns, totals, com, self.frame_id))
+        if self.pub_impulses.get_subscription_count() and frame.impulses is not None:
+            self.pub_impulses.publish(msgs.part_impulse_cloud(t_ns, frame.impulses, com,
+                                                              self.frame_id))
         if self.pub_track.get_subscription_count():
             self.pub_track.publish(msgs.track_state(t_ns, frame.names, frame.s, frame.speed))
         if self.pub_markers.get_subscription_count():
@@ -472,8 +471,11 @@ class SimNode(Node):
         elif stats.fallbacks or stats.unconverged:
             level, message = DiagnosticStatus.WARN, (
                 f'{stats.fallbacks} solver fallbacks, {stats.unconverged} unconverged solves')
-        self.pub_diagnostics.publish(msgs.diagnostics(self.t_ns, 'feeder_sim: simulation', level,
-                                                      message, self.status()))
+        name, values = 'feeder_sim: simulation', self.status()
+        self.pub_diagnostics.publish(msgs.diagnostics(self.t_ns, name, level, message, values))
+        self._record(lambda r: r.write_diagnostics(
+            self.t_ns, name, int.from_bytes(level, 'little') if isinstance(level, bytes)
+            else int(level), message, msgs.key_values(values)))
 
     def _look_for_namesakes(self) -> None:
         """While starting up: refuse to run beside another node of the same name (their
