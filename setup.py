@@ -11,8 +11,8 @@ replay = ['rerun-sdk==0.41.0']
 # the rosidl generators and ament_cmake from PyPI: interfaces/build.py builds the node's part
 # services (interfaces/feeder_sim_interfaces) into the venv with them. Listed one by one: the
 # wheels of the meta-packages do not bring their dependencies along.
-interfaces = ['ros-jazzy-' + name for name in (
-    'ament-cmake', 'ament-cmake-core', 'ament-cmake-export-definitions',
+interfaces = ['catkin_pkg'] + ['ros-jazzy-' + name for name in (
+    'ament-package', 'ament-cmake', 'ament-cmake-core', 'ament-cmake-export-definitions',
     'ament-cmake-export-dependencies', 'ament-cmake-export-include-directories',
     'ament-cmake-export-interfaces', 'ament-cmake-export-libraries',
     'ament-cmake-export-link-flags', 'ament-cmake-export-targets', 'ament-cmake-gen-version-h',
