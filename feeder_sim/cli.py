@@ -19,7 +19,8 @@ def _run(args: argparse.Namespace) -> int:
                     tolerance=args.tolerance, check_energy=args.check_energy)
     if args.record:
         Path(args.record).parent.mkdir(parents=True, exist_ok=True)
-    result = run(sim, args.duration, publish_rate_hz=args.publish_rate, record=args.record)
+    result = run(sim, args.duration, publish_rate_hz=args.publish_rate, record=args.record,
+                 log_time=args.log_time)
     if args.summary:
         Path(args.summary).parent.mkdir(parents=True, exist_ok=True)
         write_summary(result.summary, args.summary)
@@ -137,6 +138,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('scene', help='scene file (.yaml) or the name of a shipped scene')
     p.add_argument('--duration', type=float, required=True, help='simulated seconds')
     p.add_argument('--record', metavar='OUT.mcap', help='write an MCAP log')
+    p.add_argument('--log-time', choices=('wall', 'sim'), default='wall',
+                   help="MCAP log times: 'wall' (the run's start plus the simulated time, so "
+                        "viewers show dates; default) or 'sim' (simulated time alone: the same "
+                        'run gives the same file)')
     p.add_argument('--summary', metavar='OUT.json', help='write the run summary')
     p.add_argument('--plot', metavar='OUT.png',
                    help='position along the track vs time (default: next to --record)')

@@ -62,18 +62,18 @@ class RunResult:
 def run(sim: Simulator, duration_s: float, *, publish_rate_hz: float = 100.0,
         record: str | os.PathLike | None = None,
         on_frame: Callable[[Simulator], None] | None = None,
-        progress_every_s: float = 5.0) -> RunResult:
+        progress_every_s: float = 5.0, log_time: str = 'wall') -> RunResult:
     """Advance ``sim`` by ``duration_s`` of simulated time; returns the summary and samples.
 
     Frames are taken every 1/``publish_rate_hz`` s of simulated time; each frame is recorded
     when ``record`` names an MCAP file. A log line reports progress every
-    ``progress_every_s`` of wall time.
+    ``progress_every_s`` of wall time. ``log_time``: see ``frames.open_recorder``.
     """
     sim.check_duration(duration_s)
     if not (0 < publish_rate_hz <= MAX_PUBLISH_RATE_HZ):
         raise ValueError(f'publish rate must be a number of Hz in (0, {MAX_PUBLISH_RATE_HZ:g}], '
                          f'got {publish_rate_hz!r}')
-    recorder = open_recorder(sim, record) if record is not None else None
+    recorder = open_recorder(sim, record, log_time) if record is not None else None
     names = sim.part_poses()[0]
     traj = Trajectory(names)
     outcomes = OutcomeTracker(names, sim.scene.outcomes)

@@ -173,3 +173,29 @@ def test_switching_to_time_stepping_takes_a_step_fit_for_it():
         sim.advance_to(1.0)
     speed = [(sim.track_coordinates()[0][0] - a) / 0.5 for sim, a in zip((ed, ts), s0)]
     assert speed[1] == pytest.approx(speed[0], rel=0.03)        # first order: ~2 % at 400
+
+
+@pytest.mark.parametrize('log_time', ['wall', 'sim'])
+def test_log_times_start_at_the_run_or_at_zero(tmp_path, log_time):
+    # 'wall' (the default): log time = the run's wall-clock start (a whole second, in the
+    # metadata) + simulated time, so viewers show dates; 'sim': simulated time alone
+    import time
+
+    from mcap.reader import make_reader
+    from mcap_ros2.reader import read_ros2_messages
+    log = tmp_path / 'run.mcap'
+    before = time.time_ns()
+    args = ['run', 'track_one_box', '--duration', '0.05', '--record', str(log)]
+    assert main(args + ([] if log_time == 'wall' else ['--log-time', 'sim'])) == 0
+    with open(log, 'rb') as f:
+        origin = int({m.name: m.metadata for m in make_reader(f).iter_metadata()}
+                     ['feeder_sim']['log_time_origin_ns'])
+    if log_time == 'wall':
+        assert before - 10**9 < origin <= time.time_ns() and origin % 10**9 == 0
+    else:
+        assert origin == 0
+    poses = list(read_ros2_messages(str(log), topics=['/feeder_sim/part_poses']))
+    stamps = [m.ros_msg.header.stamp.sec * 10**9 + m.ros_msg.header.stamp.nanosec
+              for m in poses]
+    assert stamps == [k * 10_000_000 for k in range(1, 6)]
+    assert [m.log_time_ns for m in poses] == [origin + s for s in stamps]

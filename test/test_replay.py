@@ -122,7 +122,10 @@ def static(rrd: Path, entity: str, component: str):
 
 
 def stamp_ns(msg) -> int:
-    return msg.log_time_ns
+    """The simulated time of a message with a header (log times start at the run's wall
+    clock)."""
+    stamp = msg.ros_msg.header.stamp
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
 def transformed(polygon: np.ndarray, x: float, y: float, theta: float) -> np.ndarray:
@@ -337,7 +340,11 @@ def test_truncated_log_converts_what_it_holds(chunked_log, tmp_path):
     assert part == tmp_path / 'cut.rrd'
     n_full = len(temporal(full, '/world/parts', 'LineStrips2D:strips')[0])
     t_part, strips = temporal(part, '/world/parts', 'LineStrips2D:strips')
-    readable = [t for topic, t, _ in read_messages(cut) if topic == TOPIC_PART_POSES]
+    # log times count from the run's wall-clock start (in the metadata, early in the file)
+    with open(chunked_log, 'rb') as f:
+        meta = {m.name: m.metadata for m in make_reader(f).iter_metadata()}['feeder_sim']
+    origin = int(meta['log_time_origin_ns'])
+    readable = [t - origin for topic, t, _ in read_messages(cut) if topic == TOPIC_PART_POSES]
     assert n_full == 40
     assert 0 < len(strips) < n_full
     assert t_part.tolist() == readable
@@ -472,9 +479,9 @@ def test_parts_that_come_and_go_are_drawn_with_their_own_outlines(tmp_path):
     log = tmp_path / 'fed.mcap'
     run(Simulator(str(Path(__file__).parent / 'data' / 'fed_track.yaml')), 3.0, record=log)
     rrd = replay(log, tmp_path / 'fed.rrd', spawn=False)
-    names = {m.log_time_ns: list(m.ros_msg.name)
+    names = {stamp_ns(m): list(m.ros_msg.name)
              for m in read_ros2_messages(log, topics=['/feeder_sim/track_state'])}
-    poses = {m.log_time_ns: m.ros_msg
+    poses = {stamp_ns(m): m.ros_msg
              for m in read_ros2_messages(log, topics=['/feeder_sim/part_poses'])}
     t, labels = temporal(rrd, '/world/parts', 'LineStrips2D:labels')
     _, strips = temporal(rrd, '/world/parts', 'LineStrips2D:strips')

@@ -29,7 +29,7 @@ FRAME = 1.0 / RATE
 @pytest.fixture(scope='module')
 def slide_log(tmp_path_factory) -> tuple[dict, Path]:
     path = tmp_path_factory.mktemp('sensors') / 'slide.mcap'
-    result = run(Simulator(SCENE), 2.0, publish_rate_hz=RATE, record=path)
+    result = run(Simulator(SCENE), 2.0, publish_rate_hz=RATE, record=path, log_time='sim')
     return result.summary, path
 
 

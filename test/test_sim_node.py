@@ -244,6 +244,8 @@ def test_construction_rejects_bad_parameters():
             g.start(method='verlet')
         with pytest.raises(ValueError, match='scene'):
             g.start(scene='no_such_scene')
+        with pytest.raises(ValueError, match="log_time must be 'wall' or 'sim'"):
+            g.start(log_time='gps')
     finally:
         g.close()
 
@@ -350,6 +352,7 @@ def test_a_full_disk_is_reported_and_the_simulation_goes_on(graph):
 
 def test_the_log_read_by_mcap_ros2_holds_what_the_simulator_computed(graph, tmp_path):
     log = tmp_path / 'node.mcap'
+    before = time.time_ns()
     node = graph.start(real_time_factor=0.0, record_path=str(log), start_paused=True,
                        steps_per_call=40)
     assert graph.call(Trigger, '/feeder_sim/step', Trigger.Request()).success
@@ -366,8 +369,15 @@ def test_the_log_read_by_mcap_ros2_holds_what_the_simulator_computed(graph, tmp_
                      '/feeder_sim/part_impulses': 'sensor_msgs/msg/PointCloud2'}
     poses = [m for m in messages if m.channel.topic == '/feeder_sim/part_poses']
     assert len(poses) == 41                     # the initial frame and 40 steps
-    assert [m.log_time_ns for m in poses] == [k * 10_000_000 for k in range(41)]
-    assert all(_ns(m.ros_msg.header.stamp) == m.log_time_ns for m in poses)
+    assert [_ns(m.ros_msg.header.stamp) for m in poses] == [k * 10_000_000 for k in range(41)]
+    # log times: the recording's start on the wall clock (a whole second) plus simulated time,
+    # so that viewers show when the run was, not 1970
+    from mcap.reader import make_reader
+    with open(log, 'rb') as f:
+        meta = {m.name: m.metadata for m in make_reader(f).iter_metadata()}['feeder_sim']
+    origin = int(meta['log_time_origin_ns'])
+    assert before - 1_000_000_000 < origin <= time.time_ns() and origin % 1_000_000_000 == 0
+    assert all(m.log_time_ns == origin + _ns(m.ros_msg.header.stamp) for m in poses)
     bare = Simulator('track_one_box')
     for k in range(1, 41):
         bare.advance(k * 0.01)
@@ -378,13 +388,15 @@ def test_the_log_read_by_mcap_ros2_holds_what_the_simulator_computed(graph, tmp_
 
 
 def test_same_commands_at_the_same_simulated_times_give_the_same_log(tmp_path):
+    # log_time 'sim': log times are simulated time alone (by default they start at the
+    # recording's wall-clock time, which no two runs share)
     logs = []
     for run in range(2):
         g = Graph()
         try:
             path = tmp_path / f'run{run}.mcap'
             node = g.start(real_time_factor=0.0, start_paused=True, record_path=str(path),
-                           steps_per_call=7)
+                           steps_per_call=7, log_time='sim')
             pub = g.publisher(Float64MultiArray, 'vibration_cmd')
             for command in ([5e-4, 40.0], [2e-4, 70.0]):
                 for _ in range(3):
@@ -544,7 +556,7 @@ def test_reset_while_recording_starts_an_episode_with_monotonic_log_time(graph, 
 
     log = tmp_path / 'episodes.mcap'
     node = graph.start(real_time_factor=0.0, record_path=str(log), start_paused=True,
-                       steps_per_call=10)
+                       steps_per_call=10, log_time='sim')
     drive = node.sim.world.drives[node.sim.world.driven[0]]
     initial = (drive.amplitude_m, drive.frequency_hz)
     assert graph.call(Trigger, '/feeder_sim/step', Trigger.Request()).success    # to 0.1 s

@@ -10,6 +10,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 import json
 import os
+import time
 
 import numpy as np
 
@@ -114,17 +115,33 @@ def _record_geometry(recorder, frame: Frame) -> None:
     drawn.update({n: len(frame.outlines[n]) for n in new})
 
 
-def recording_metadata(sim: Simulator) -> dict[str, str]:
-    """What a log needs besides its messages: the scene (as JSON) and how it was solved."""
+LOG_TIMES = ('wall', 'sim')
+
+
+def recording_metadata(sim: Simulator, log_time_origin_ns: int = 0) -> dict[str, str]:
+    """What a log needs besides its messages: the scene (as JSON), how it was solved, and
+    the wall-clock time its log times count simulated time from."""
     return {'scene': sim.scene.name, 'method': sim.method, 'feeder_sim': __version__,
-            'scene_json': json.dumps(scene_to_dict(sim.scene), separators=(',', ':'))}
+            'scene_json': json.dumps(scene_to_dict(sim.scene), separators=(',', ':')),
+            'log_time_origin_ns': str(log_time_origin_ns)}
 
 
-def open_recorder(sim: Simulator, path: str | os.PathLike, **options):
-    """An MCAP recorder for ``sim`` holding the scene metadata and the vibration in force."""
+def open_recorder(sim: Simulator, path: str | os.PathLike, log_time: str = 'wall', **options):
+    """An MCAP recorder for ``sim`` holding the scene metadata and the vibration in force.
+
+    ``log_time`` 'wall': log times are the wall-clock time at which the recording started plus
+    the simulated time, so that viewers show dates and times of day (not 1970); 'sim': log
+    times are simulated time alone (two runs of the same commands give the same file).
+    Header stamps are simulated time either way."""
     from feeder_sim.output.recording import McapRecorder
-    recorder = McapRecorder(path, metadata=recording_metadata(sim),
-                            sensors=[(x.name, x.kind) for x in sim.scene.sensors], **options)
+    if log_time not in LOG_TIMES:
+        raise ValueError(f"log_time must be 'wall' or 'sim', got {log_time!r}")
+    # whole seconds: the simulated times stay readable in the log times' digits
+    origin = (time.time_ns() // 1_000_000_000) * 1_000_000_000 if log_time == 'wall' else 0
+    origin -= round(sim.t * 1e9) if origin else 0
+    recorder = McapRecorder(path, metadata=recording_metadata(sim, origin),
+                            sensors=[(x.name, x.kind) for x in sim.scene.sensors],
+                            log_time_origin_ns=origin, **options)
     for i in sim.world.driven:
         d = sim.world.drives[i]
         recorder.write_vibration_cmd(int(round(sim.t * 1e9)), d.amplitude_m, d.frequency_hz)

@@ -437,14 +437,21 @@ class McapRecorder:
         compression: str = DEFAULT_COMPRESSION,
         flush_interval: float | None = None,
         sensors: Sequence[tuple[str, str]] = (),
+        log_time_origin_ns: int = 0,
     ):
         """Open ``path`` (truncating it) and write header, schemas and channels.
 
         ``flush_interval`` (wall-clock seconds, optional) also closes the open chunk when it is
         older than that, bounding what a hard kill can lose in slow runs.  ``metadata`` is
         written as a metadata record named ``feeder_sim``. ``sensors`` ((name, kind) pairs)
-        adds the channels of :func:`sensor_topics` after those of :data:`TOPICS`.
+        adds the channels of :func:`sensor_topics` after those of :data:`TOPICS`. Log times
+        are the simulated time plus ``log_time_origin_ns`` (ns since the Unix epoch: the
+        wall-clock time at which simulated time 0 is shown; header stamps stay simulated
+        time).
         """
+        log_time_origin_ns = operator.index(log_time_origin_ns)
+        if log_time_origin_ns < 0:
+            raise ValueError(f'log_time_origin_ns must be >= 0, got {log_time_origin_ns}')
         self._path = os.fspath(path)
         if isinstance(self._path, bytes):
             self._path = os.fsdecode(self._path)
@@ -471,7 +478,9 @@ class McapRecorder:
         self._frames: dict[str, _Frame] = {}
         self._names_cache: tuple[tuple[str, ...], bytes] = ((), _U32.pack(0))
         self._episode = 0             # index of the running episode (reset count)
-        self._log_offset_ns = 0       # log time = simulated time + this (see begin_episode)
+        self.log_time_origin_ns = log_time_origin_ns
+        # log time = simulated time + this: the origin, then moved on by each begin_episode
+        self._log_offset_ns = log_time_origin_ns
         self._last_log_ns = 0
         # the bodies whose outlines are in the log (name -> outline count), for write_outlines'
         # callers that draw parts as they come and delete them as they go

@@ -392,12 +392,15 @@ def _read_log(path: Path) -> _Log:
     _check_mcap(path)
     records = _read_metadata(path)
     metadata = records.get('feeder_sim', {})
+    # log times count simulated time from this wall-clock instant (0: from the epoch)
+    origin = int(metadata.get('log_time_origin_ns', 0))
     episode_starts = np.sort(np.array(
-        [int(m.get('log_time_ns', 0)) for name, m in records.items()
+        [int(m.get('log_time_ns', 0)) - origin for name, m in records.items()
          if name.startswith('episode_')], np.int64))
     poses, contacts, track, vibration = [], [], [], []
     end_t = 0
     for topic, t_ns, message in _messages(path):
+        t_ns -= origin
         end_t = max(end_t, t_ns)
         if topic == TOPIC_PART_POSES:
             poses.append((t_ns, *message))

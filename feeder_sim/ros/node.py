@@ -112,6 +112,8 @@ PARAMETERS = (
            read_only=False, low=0.0, high=1e6),
     _Param('on_record_error', 'continue', "when the log cannot be written: 'continue' "
            "simulating without it, or 'stop' the node (exit status 1)"),
+    _Param('log_time', 'wall', "MCAP log times: 'wall' (the recording's start plus the simulated "
+           "time: viewers show dates) or 'sim' (simulated time alone: reproducible files)"),
     _Param('record_flush_period', 1.0, 'wall seconds after which the open MCAP chunk is written '
            'out, bounding what a hard kill loses', low=0.01, high=3600.0),
     _Param('marker_rate', 20.0, 'wall-clock Hz at which ~/markers (outlines, impulse arrows) '
@@ -175,6 +177,9 @@ class SimNode(Node):
         if value['method'] and value['method'] not in METHODS:
             raise ValueError(f"parameter method must be one of {', '.join(METHODS)} or '', got "
                              f"{value['method']!r}")
+        if value['log_time'] not in ('wall', 'sim'):
+            raise ValueError("parameter log_time must be 'wall' or 'sim', got "
+                             f"{value['log_time']!r}")
         if value['on_record_error'] not in ('continue', 'stop'):
             raise ValueError("parameter on_record_error must be 'continue' or 'stop', got "
                              f"{value['on_record_error']!r}")
@@ -201,7 +206,8 @@ class SimNode(Node):
         self._record_status = 'off'
         self.recorder = None
         if value['record_path']:
-            self._open_recording(value['record_path'], value['record_flush_period'])
+            self._open_recording(value['record_path'], value['record_flush_period'],
+                                 value['log_time'])
 
         world = self.sim.world
         self._parts = self.sim.part_indices
@@ -547,11 +553,12 @@ class SimNode(Node):
 
     # -- recording -------------------------------------------------------------------------
 
-    def _open_recording(self, path: str, flush_period_s: float) -> None:
+    def _open_recording(self, path: str, flush_period_s: float, log_time: str) -> None:
         try:
             directory = os.path.dirname(os.path.abspath(path))
             os.makedirs(directory, exist_ok=True)
-            self.recorder = open_recorder(self.sim, path, flush_interval=flush_period_s)
+            self.recorder = open_recorder(self.sim, path, log_time=log_time,
+                                          flush_interval=flush_period_s)
             self._record_status = f'ok: {path}'
         except OSError as err:
             self._recording_failed(err)
