@@ -133,3 +133,61 @@ def test_part_impulses_in_the_log_carry_the_weight_of_parts_sliding_without_fric
         for row, pose in zip(rows, poses[t].poses, strict=True):
             assert (row['x'], row['y']) == pytest.approx(
                 (pose.position.x, pose.position.y), abs=1e-7)     # float32
+
+
+JS_PACKAGES = {'@mcap/core': '2.2.2', '@foxglove/rosmsg': '5.0.5',
+               '@foxglove/rosmsg2-serialization': '3.1.0', '@foxglove/wasm-zstd': '1.0.1'}
+
+
+@pytest.fixture(scope='module')
+def foxglove_decoders() -> Path:
+    """A directory holding the npm packages Foxglove decodes ROS 2 logs with (installed once
+    into the user's cache, never into the checkout)."""
+    import json
+    import os
+    import shutil
+    if shutil.which('node') is None or shutil.which('npm') is None:
+        pytest.skip('Node.js and npm are needed to run the viewer\'s own decoders')
+    home = Path(os.environ.get('XDG_CACHE_HOME', Path.home() / '.cache'))
+    where = home / 'feeder_sim' / 'viewer-decoders'
+    where.mkdir(parents=True, exist_ok=True)
+    manifest = {'name': 'viewer-decoders', 'private': True, 'dependencies': JS_PACKAGES}
+    package = where / 'package.json'
+    if not (where / 'node_modules').is_dir() or not package.is_file() or json.loads(
+            package.read_text()) != manifest:
+        (where / 'package.json').write_text(json.dumps(manifest))
+        subprocess.run(['npm', 'install', '--no-audit', '--no-fund', '--silent'], cwd=where,
+                       check=True, capture_output=True, timeout=300)
+    shutil.copy(Path(__file__).parent / 'js' / 'decode_mcap.mjs', where / 'decode_mcap.mjs')
+    return where
+
+
+def test_foxglove_decoders_read_every_message_as_the_python_reader_does(foxglove_decoders,
+                                                                       tmp_path):
+    import json
+    log = tmp_path / 'slide.mcap'
+    run(Simulator(str(DATA / 'sensor_slide.yaml')), 1.2, record=log)
+    out = subprocess.run(['node', str(foxglove_decoders / 'decode_mcap.mjs'), str(log)],
+                         capture_output=True, text=True, check=True, timeout=120).stdout
+    theirs = json.loads(out)
+    ours: dict[str, list] = {}
+    for m in read_ros2_messages(str(log)):
+        ours.setdefault(m.channel.topic, []).append(m)
+    assert {t for t, v in theirs.items() if v['messages']} == set(ours)
+    for topic, messages in ours.items():
+        assert len(theirs[topic]['messages']) == len(messages), topic
+    geometry = theirs['/feeder_sim/geometry']['messages'][0]['message']['markers']
+    ref = ours['/feeder_sim/geometry'][0].ros_msg.markers
+    assert [(m['ns'], m['header']['frame_id'], m['frame_locked'], m['type']) for m in geometry] \
+        == [(m.ns, m.header.frame_id, m.frame_locked, m.type) for m in ref]
+    assert [[(p['x'], p['y']) for p in m['points']] for m in geometry] == \
+        [[(p.x, p.y) for p in m.points] for m in ref]
+    for a, b in zip(theirs['/tf']['messages'], ours['/tf'], strict=True):
+        assert [(x['child_frame_id'], x['transform']['translation']['x'],
+                 x['transform']['rotation']['z']) for x in a['message']['transforms']] == \
+            [(x.child_frame_id, x.transform.translation.x, x.transform.rotation.z)
+             for x in b.ros_msg.transforms]
+        assert int(a['log_time']) == b.log_time_ns
+    passed = [(m['message']['key'], m['message']['value'])
+              for m in theirs['/feeder_sim/sensors/camera/passed']['messages']]
+    assert passed == [('flat_box', 'flat')]          # the upright box passes at 1.5 s
