@@ -4,7 +4,8 @@ The node is a thin shell over :class:`feeder_sim.simulator.Simulator`. Simulated
 in frames of ``1 / publish_rate`` seconds; after each frame the node publishes the state,
 stamped with simulated time, and appends it to the MCAP log. Physics never reads a ROS clock:
 the wall clock only paces the frames (``real_time_factor``; 0 runs as fast as possible), so the
-same scene with the same commands at the same simulated times gives the same log.
+same scene with the same commands at the same simulated times gives the same log (with
+``log_time:=sim``; by default log times start at the recording's wall-clock time).
 
 Topics (relative to the node's namespace; ``~`` is the node name)::
 
@@ -16,9 +17,14 @@ Topics (relative to the node's namespace; ``~`` is the node name)::
     ~/markers               visualization_msgs/MarkerArray  part outlines and impulse arrows
     ~/geometry              visualization_msgs/MarkerArray  static bodies (latched)
     /diagnostics            diagnostic_msgs/DiagnosticArray real-time factor, solver health
+    ~/sensors/<name>/blocked  std_msgs/Bool               a scene's beam: an outline cuts it
+    ~/sensors/<name>/count  std_msgs/UInt32               parts that passed a scene's sensor
+    ~/sensors/<name>/passed diagnostic_msgs/KeyValue      inspection: part, orientation
     vibration_cmd (in)      std_msgs/Float64MultiArray    [amplitude_m, frequency_hz]
 
-Services: ``~/reset`` (Trigger), ``~/pause`` (SetBool), ``~/step`` (Trigger, while paused).
+Services: ``~/reset`` (Trigger), ``~/pause`` (SetBool), ``~/step`` (Trigger, while paused),
+and, where feeder_sim_interfaces is built, ``~/spawn_entity``, ``~/delete_entity``,
+``~/set_entity_state``, ``~/get_entities`` (parts while running).
 """
 
 from __future__ import annotations
