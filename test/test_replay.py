@@ -495,3 +495,21 @@ def test_parts_that_come_and_go_are_drawn_with_their_own_outlines(tmp_path):
         corner = [pose.position.x + c * -half_w - s * -half_h,
                   pose.position.y + s * -half_w + c * -half_h]
         assert strip[-1][0] == pytest.approx(corner, abs=1e-6)      # f32 in the recording
+
+
+def test_sensors_are_plotted_and_each_passing_part_is_a_line(tmp_path):
+    # the sensor_slide scene: a beam at x = 0.05 m and a camera at 0.1 m; the replay plots
+    # each count and the beam's state at the frames' simulated times and writes one line per
+    # part that passes the camera
+    log = tmp_path / 'slide.mcap'
+    run(Simulator(str(Path(__file__).parent / 'data' / 'sensor_slide.yaml')), 2.0, record=log)
+    rrd = replay(log, tmp_path / 'slide.rrd', spawn=False)
+    counts = [m.ros_msg.data for m in messages(log, '/feeder_sim/sensors/beam/count')]
+    t, values = temporal(rrd, '/plots/sensors/beam/count', 'Scalars:scalars')
+    assert [v[0] for v in values] == counts and counts[-1] == 2
+    assert t.tolist() == [k * 10_000_000 for k in range(1, 201)]     # simulated time
+    _, blocked = temporal(rrd, '/plots/sensors/beam/blocked', 'Scalars:scalars')
+    assert sum(v[0] for v in blocked) == 32                          # 21 + 11 frames
+    t, lines = temporal(rrd, '/sensors/camera/passed', 'TextLog:text')
+    assert [x[0] for x in lines] == ['flat_box: flat', 'upright_box: upright']
+    assert t.tolist() == [1_010_000_000, 1_510_000_000]

@@ -78,6 +78,7 @@ from feeder_sim.output.recording import (
     CONTACT_FIELDS,
     CONTACT_POINT_DTYPE,
     read_messages,
+    SENSOR_PREFIX,
     top_level_records,
     TOPIC_CONTACTS,
     TOPIC_PART_POSES,
@@ -152,6 +153,8 @@ class _Log:
     episode_starts: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     # the parts track_state named at each time (ns): which pose is which part
     frame_names: dict = field(default_factory=dict)
+    # the scene's sensors: topic suffix ('<name>/count', ...) -> [(t ns, value), ...]
+    sensors: dict = field(default_factory=dict)
 
 
 def _check_mcap(path: Path) -> None:
@@ -398,6 +401,7 @@ def _read_log(path: Path) -> _Log:
         [int(m.get('log_time_ns', 0)) - origin for name, m in records.items()
          if name.startswith('episode_')], np.int64))
     poses, contacts, track, vibration = [], [], [], []
+    sensors = _read_sensors(path, origin)
     end_t = 0
     for topic, t_ns, message in _messages(path):
         t_ns -= origin
@@ -429,7 +433,33 @@ def _read_log(path: Path) -> _Log:
         vibration=np.array([m[1] for m in vibration], float).reshape(-1, 2),
         end_t=end_t, episode_starts=episode_starts,
         frame_names={m[0]: tuple(m[1][:len(m[2])]) for m in track},
+        sensors=sensors,
     )
+
+
+def _read_sensors(path: Path, origin: int) -> dict[str, list]:
+    """The sensors' messages (``recording.SENSOR_TOPICS``): blocked as 0/1, counts, and
+    (part, orientation) pairs, by topic suffix, in time order."""
+    out: dict[str, list] = {}
+    for topic, t_ns, data in read_messages(path):
+        if not topic.startswith(SENSOR_PREFIX):
+            continue
+        r = _Cdr(data)
+        try:
+            if topic.endswith('/blocked'):
+                value = r.u8()
+            elif topic.endswith('/count'):
+                value = r.u32()
+            elif topic.endswith('/passed'):
+                value = (r.string(), r.string())
+            else:
+                continue
+        except (ValueError, IndexError, struct.error):
+            continue
+        out.setdefault(topic[len(SENSOR_PREFIX):], []).append((t_ns - origin, value))
+    for samples in out.values():
+        samples.sort(key=lambda x: x[0])
+    return out
 
 
 def _concat(arrays: list[np.ndarray], empty_shape: tuple[int, ...]) -> np.ndarray:
@@ -698,6 +728,23 @@ def _log_series(rec: rr.RecordingStream, log_: _Log, names: list[str]) -> None:
                 scalars=1e3 * np.asarray(values, float)))
 
 
+def _log_sensors(rec: rr.RecordingStream, log_: _Log) -> None:
+    """Each sensor's count and beam state as plots, each passing part as a line of text."""
+    for suffix, samples in sorted(log_.sensors.items()):
+        name, kind = suffix.rsplit('/', 1)
+        t = np.array([x[0] for x in samples], np.int64)
+        if kind == 'passed':
+            for ti, (part, orientation) in samples:
+                rec.set_time(TIMELINE, duration=np.timedelta64(ti, 'ns'))
+                rec.log(f'/sensors/{name}/passed', rr.TextLog(f'{part}: {orientation}'))
+            rec.reset_time()
+            continue
+        path = f'/plots/sensors/{name}/{kind}'
+        rec.log(path, rr.SeriesLines(names=f'{name} {kind}'), static=True)
+        rec.send_columns(path, indexes=_time_columns(log_, t), columns=rr.Scalars.columns(
+            scalars=np.array([x[1] for x in samples], float)))
+
+
 def _log_episodes(rec: rr.RecordingStream, log_: _Log) -> None:
     """A line in ``/episodes`` where each reset starts a new episode."""
     for k, start in enumerate(log_.episode_starts.tolist(), 1):
@@ -823,6 +870,7 @@ def _write_rrd(log_: _Log, rrd: Path) -> None:
         _log_contacts(rec, log_, scale)
         _log_series(rec, log_, names)
         _log_vibration(rec, log_)
+        _log_sensors(rec, log_)
         _log_episodes(rec, log_)
         rec.flush()
         rec.disconnect()
