@@ -808,7 +808,7 @@ def _bounds(log_: _Log, size: float) -> rrb.VisualBounds2D | None:
 
 
 def _blueprint(log_: _Log, size: float) -> rrb.Blueprint:
-    """The layout: the 2D world above the position, speed and vibration plots."""
+    """The layout: the 2D world above the position, speed, vibration (and sensor) plots."""
     bounds = _bounds(log_, size)
     return rrb.Blueprint(
         rrb.Vertical(
@@ -819,6 +819,9 @@ def _blueprint(log_: _Log, size: float) -> rrb.Blueprint:
                 rrb.TimeSeriesView(name='speed along track [mm/s]', origin='/plots/speed'),
                 rrb.Tabs(
                     rrb.TimeSeriesView(name='vibration command', origin='/plots/vibration'),
+                    *([rrb.TimeSeriesView(name='sensors', origin='/plots/sensors'),
+                       rrb.TextLogView(name='parts passing', origin='/sensors')]
+                      if log_.sensors else []),
                     rrb.TextDocumentView(name='notes', origin='/notes'),
                 ),
             ),
