@@ -117,10 +117,11 @@ def test_the_run_simulates_exactly_the_duration_asked(tmp_path, duration):
 
 @pytest.mark.parametrize('method', ['event_driven', 'time_stepping'])
 def test_two_runs_give_identical_logs(tmp_path, method):
+    # --log-time sim: by default log times start at the run's wall-clock second
     paths = [tmp_path / f'{k}.mcap' for k in range(2)]
     for path in paths:
         assert main(['-q', 'run', 'track_one_box', '--duration', '0.05', '--method', method,
-                     '--time-step', '1e-4', '--record', str(path)]) == 0
+                     '--time-step', '1e-4', '--record', str(path), '--log-time', 'sim']) == 0
     assert paths[0].read_bytes() == paths[1].read_bytes()
 
 
