@@ -18,7 +18,7 @@ import numpy as np
 
 from feeder_sim.output import frames
 from feeder_sim.output.frames import Frame, open_recorder, record_frame
-from feeder_sim.output.outcomes import OutcomeTracker, progress
+from feeder_sim.output.outcomes import OutcomeTracker
 from feeder_sim.simulator import MAX_PUBLISH_RATE_HZ, Simulator
 
 log = logging.getLogger('feeder_sim')
@@ -79,8 +79,6 @@ def run(sim: Simulator, duration_s: float, *, publish_rate_hz: float = 100.0,
     outcomes = OutcomeTracker(names, sim.scene.outcomes)
     sensors = frames.sensor_bank(sim)
     frames.read_sensors(sim, sensors)   # where the parts start: a pass in frame 1 counts
-    w = sim.world
-    track_angle = w.base_angle[w.track_index] if w.track_index is not None else 0.0
     t0 = sim.t
     period = 1.0 / publish_rate_hz
     # the last frame may be shorter: the run ends at exactly duration_s
@@ -94,7 +92,7 @@ def run(sim: Simulator, duration_s: float, *, publish_rate_hz: float = 100.0,
             sim.advance_to(t0 + min(k * period, duration_s))
             frame = Frame.take(sim, sensors)
             traj.add(sim.t, frame.names, frame.s, frame.speed)
-            outcomes.update(sim.t, *progress(sim, outcomes.spec), frame.angle - track_angle,
+            outcomes.update(sim.t, *sim.exit_progress(), frame.angle - sim.world.track_angle,
                             frame.names)
             if recorder is not None:
                 record_frame(recorder, frame)

@@ -289,12 +289,8 @@ class Feed:
         if not self.sinks:
             return
         names, _, _ = sim.part_poses()
-        spec = sim.scene.outcomes
-        com = sim.state.position[sim.part_indices]
-        # how far along to the exit, as the outcomes measure it
-        along = (sim.track_coordinates()[0] if spec.exit_axis is None
-                 else com @ np.asarray(spec.exit_axis))
-        exit_at = spec.exit_position
+        along, com = sim.exit_progress()
+        exit_at = sim.scene.outcomes.exit_position
         gone = []
         for name, s, (_, y) in zip(names, along, com, strict=True):
             for sink in self.sinks:
@@ -560,6 +556,15 @@ class Simulator:
         origin, angle = self.world.body_frame_pose(self.state)
         idx = self.part_indices
         return tuple(self.world.names[i] for i in idx), origin[idx], angle[idx]
+
+    def exit_progress(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each part's progress towards the scene's exit (m: along the track's x axis, or
+        along ``outcomes.exit_axis`` from the world origin) and its centre of mass (n, 2)."""
+        com = self.state.position[self.part_indices]
+        axis = self.scene.outcomes.exit_axis
+        if axis is None:
+            return self.track_coordinates()[0], com
+        return com @ np.asarray(axis), com
 
     def track_coordinates(self, state: State | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Position (m) and speed (m/s) of each part's centre of mass along the track's x axis."""

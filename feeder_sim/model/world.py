@@ -211,13 +211,17 @@ class World:
         origin = state.position - np.einsum('nij,nj->ni', rot(state.angle), self.com_local)
         return origin, state.angle.copy()
 
+    @property
+    def track_angle(self) -> float:
+        """Angle of the track body's x axis at rest (rad, world frame); 0 without a track:
+        the reference of a part's orientation."""
+        return 0.0 if self.track_index is None else float(self.base_angle[self.track_index])
+
     def track_frame(self) -> tuple[np.ndarray, np.ndarray]:
         """Origin and unit x axis of the track body at rest (world frame)."""
-        if self.track_index is None:
-            return np.zeros(2), np.array([1.0, 0.0])
-        i = self.track_index
-        theta = self.base_angle[i]
-        return self.base_position[i], np.array([math.cos(theta), math.sin(theta)])
+        origin = np.zeros(2) if self.track_index is None else self.base_position[self.track_index]
+        theta = self.track_angle
+        return origin, np.array([math.cos(theta), math.sin(theta)])
 
     def kinetic_energy(self, state: State) -> float:
         """J, dynamic bodies only."""

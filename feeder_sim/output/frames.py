@@ -6,8 +6,8 @@ with :func:`record_frame`, so a log is the same whichever wrote it.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass
+import functools
 import json
 import os
 import time
@@ -15,7 +15,7 @@ import time
 import numpy as np
 
 from feeder_sim import __version__
-from feeder_sim.model.scene import scene_to_dict
+from feeder_sim.model.scene import BodySpec, scene_to_dict
 from feeder_sim.output.impulses import part_impulses, PartImpulses
 from feeder_sim.output.sensors import SensorBank, SensorReading
 from feeder_sim.simulator import ContactReport, Simulator
@@ -23,7 +23,8 @@ from feeder_sim.simulator import ContactReport, Simulator
 
 @dataclass
 class Frame:
-    """What is published and recorded at one simulated time: one pass over the state."""
+    """What is published and recorded at one simulated time: one pass over the state. What
+    only some frames need (outlines, impulse totals) is worked out on first use."""
 
     t_ns: int                    # simulated time, ns
     names: tuple[str, ...]       # parts, scene order
@@ -32,44 +33,58 @@ class Frame:
     s: np.ndarray                # (n,) position along the track, m
     speed: np.ndarray            # (n,) speed along the track, m/s
     contacts: ContactReport      # contacts and impulses since the previous frame
+    bodies: tuple[str, ...]      # every body, world order (for transforms)
+    body_origin: np.ndarray      # (N, 2) their body-frame origins, m
+    body_angle: np.ndarray       # (N,) rad
+    parts: np.ndarray            # (n,) the parts' indices among the bodies
+    centre_of_mass: np.ndarray   # (N, 2) every body's, m
+    scene_bodies: tuple[BodySpec, ...]        # the bodies as the scene has them now
     sensors: tuple[SensorReading, ...] = ()   # the scene's sensors, in scene order
-    bodies: tuple[str, ...] = ()              # every body, world order (for transforms)
-    body_origin: np.ndarray | None = None     # (N, 2) their body-frame origins, m
-    body_angle: np.ndarray | None = None      # (N,) rad
-    outlines: Mapping[str, tuple[np.ndarray, ...]] | None = None   # by body, body frame
-    part_com: np.ndarray | None = None        # (n, 2) the parts' centres of mass, m
-    impulses: PartImpulses | None = None      # the contacts' impulses totalled per part
 
     @classmethod
     def take(cls, sim: Simulator, sensors: SensorBank | None = None) -> Frame:
         """The current frame of ``sim``; takes (and so resets) its contact report, and reads
         ``sensors`` (which follow the parts from frame to frame)."""
-        names, origin, angle = sim.part_poses()
+        parts, names, body_origin, body_angle = _poses(sim)
         s, v = sim.track_coordinates()
-        readings = read_sensors(sim, sensors) if sensors is not None else ()
-        body_origin, body_angle = sim.world.body_frame_pose(sim.state)
-        outlines = {b.name: b.outlines for b in sim.world.scene.bodies}
-        contacts = sim.take_contacts()
-        parts = sim.part_indices
-        return cls(round(sim.t * 1e9), names, origin, angle, s, v, contacts, readings,
-                   tuple(sim.world.names), body_origin, body_angle, outlines,
-                   sim.state.position[parts], part_impulses(contacts, parts, sim.state.position))
+        frame = cls(round(sim.t * 1e9), names, body_origin[parts], body_angle[parts], s, v,
+                    sim.take_contacts(), tuple(sim.world.names), body_origin, body_angle,
+                    parts, sim.state.position.copy(), sim.world.scene.bodies)
+        if sensors is not None and sensors.specs:
+            frame.sensors = sensors.update(names, frame.centre_of_mass[parts], frame.origin,
+                                           frame.angle, frame.outlines)
+        return frame
+
+    @functools.cached_property
+    def outlines(self) -> dict[str, tuple[np.ndarray, ...]]:
+        """Each body's outlines (body frame, as the scene gives them), by name."""
+        return {b.name: b.outlines for b in self.scene_bodies}
+
+    @functools.cached_property
+    def impulses(self) -> PartImpulses:
+        """The contacts' impulses totalled per part."""
+        return part_impulses(self.contacts, self.parts, self.centre_of_mass)
+
+
+def _poses(sim: Simulator) -> tuple[np.ndarray, tuple[str, ...], np.ndarray, np.ndarray]:
+    """The parts' indices and names, and every body's frame (origins m, angles rad)."""
+    parts = sim.part_indices
+    body_origin, body_angle = sim.world.body_frame_pose(sim.state)
+    return parts, tuple(sim.world.names[i] for i in parts), body_origin, body_angle
 
 
 def read_sensors(sim: Simulator, sensors: SensorBank) -> tuple[SensorReading, ...]:
-    """``sensors`` read at ``sim``'s current state."""
+    """``sensors`` read at ``sim``'s current state (without taking a frame)."""
     if not sensors.specs:
         return ()
-    names, origin, angle = sim.part_poses()
-    outlines = {b.name: b.outlines for b in sim.world.scene.bodies}
-    return sensors.update(names, sim.state.position[sim.part_indices], origin, angle, outlines)
+    parts, names, body_origin, body_angle = _poses(sim)
+    return sensors.update(names, sim.state.position[parts], body_origin[parts],
+                          body_angle[parts], {b.name: b.outlines for b in sim.world.scene.bodies})
 
 
 def sensor_bank(sim: Simulator) -> SensorBank:
     """The sensors of ``sim``'s scene, orientations read relative to its track."""
-    w = sim.world
-    track_angle = float(w.base_angle[w.track_index]) if w.track_index is not None else 0.0
-    return SensorBank(sim.scene.sensors, sim.scene.outcomes, track_angle)
+    return SensorBank(sim.scene.sensors, sim.scene.outcomes, sim.world.track_angle)
 
 
 def record_frame(recorder, frame: Frame) -> None:
@@ -80,13 +95,11 @@ def record_frame(recorder, frame: Frame) -> None:
     recorder.write_contacts(t_ns, c.point, c.normal, c.normal_impulse, c.tangent_impulse,
                             c.body_a, c.body_b)
     recorder.write_track_state(t_ns, frame.names, frame.s, frame.speed)
-    if frame.outlines is not None:
-        _record_geometry(recorder, frame)
-        recorder.write_transforms(t_ns, frame.bodies, frame.body_origin, frame.body_angle)
-    if frame.impulses is not None:
-        p = frame.impulses
-        recorder.write_part_impulses(t_ns, frame.part_com, p.impulse, p.angular_impulse,
-                                     p.normal_impulse, p.contacts)
+    _record_geometry(recorder, frame)
+    recorder.write_transforms(t_ns, frame.bodies, frame.body_origin, frame.body_angle)
+    p = frame.impulses
+    recorder.write_part_impulses(t_ns, frame.centre_of_mass[frame.parts], p.impulse,
+                                 p.angular_impulse, p.normal_impulse, p.contacts)
     for reading in frame.sensors:
         recorder.write_sensor(t_ns, reading.name, reading.kind, reading.blocked, reading.count,
                               reading.passed)

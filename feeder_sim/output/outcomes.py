@@ -128,10 +128,3 @@ def steady_feed_rate(exit_times_s: list[float]) -> float | None:
     span = max(exit_times_s) - min(exit_times_s) if len(exit_times_s) > 1 else 0.0
     return 60.0 * (len(exit_times_s) - 1) / span if span > 0 else None
 
-
-def progress(sim, spec: OutcomeSpec) -> tuple[np.ndarray, np.ndarray]:
-    """Each part's progress towards the exit (m) and centre of mass (n, 2) in ``sim``."""
-    com = sim.state.position[sim.part_indices]
-    if spec.exit_axis is None:
-        return sim.track_coordinates()[0], com
-    return com @ np.asarray(spec.exit_axis), com

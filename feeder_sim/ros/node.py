@@ -399,7 +399,6 @@ class SimNode(Node):
     def _publish_frame(self, frame: Frame) -> None:
         self._follow_parts()
         t_ns, contacts = frame.t_ns, frame.contacts
-        com = self.sim.state.position
         # A message nobody subscribes to is not built: serializing it is most of the cost.
         if self.pub_clock.get_subscription_count():
             self.pub_clock.publish(msgs.clock(t_ns))
@@ -408,9 +407,9 @@ class SimNode(Node):
                                                    self.frame_id))
         if self.pub_contacts.get_subscription_count():
             self.pub_contacts.publish(msgs.contact_cloud(t_ns, contacts, self.frame_id))
-        if self.pub_impulses.get_subscription_count() and frame.impulses is not None:
-            self.pub_impulses.publish(msgs.part_impulse_cloud(t_ns, frame.impulses, com,
-                                                              self.frame_id))
+        if self.pub_impulses.get_subscription_count():
+            self.pub_impulses.publish(msgs.part_impulse_cloud(
+                t_ns, frame.impulses, frame.centre_of_mass, self.frame_id))
         if self.pub_track.get_subscription_count():
             self.pub_track.publish(msgs.track_state(t_ns, frame.names, frame.s, frame.speed))
         if self.pub_markers.get_subscription_count():

@@ -95,9 +95,7 @@ def run_trial(spec: StudySpec, design: Mapping[str, float], repeat: int,
         sim = Simulator(scene, method=spec.method)
         result = run(sim, spec.duration_s, publish_rate_hz=spec.publish_rate_hz,
                      record=record_path, progress_every_s=math.inf)
-        track_angle = sim.world.base_angle[sim.world.track_index] \
-            if sim.world.track_index is not None else 0.0
-        resting = [classify(float(a) - track_angle, sim.scene.outcomes)
+        resting = [classify(float(a) - sim.world.track_angle, sim.scene.outcomes)
                    for a in sim.state.angle[sim.part_indices]]
         row.update(metrics_of(result.summary, spec.metrics, resting))
         row['parts_fed_count'] = result.summary['outcomes']['parts_exited']
