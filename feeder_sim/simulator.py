@@ -163,6 +163,10 @@ class _ImpulseLog:
                              np.zeros(0, int), np.zeros(0, int))
 
 
+class UnknownPart(ValueError):
+    """A part or part template named that the simulation does not have."""
+
+
 class EnergyInvariantError(AssertionError):
     """Mechanical energy rose by more than the check allows where nothing could supply it."""
 
@@ -270,10 +274,7 @@ class Feed:
         _, angle, _ = src.orientations[rng.choice(len(shares), p=shares / shares.sum())]
         if math.isnan(angle):
             angle = sim.template_body(src.template).pose[2]
-        number = self.added[k] + 1
-        while f'{src.template}_{number}' in sim.world.names:
-            number += 1
-        name = f'{src.template}_{number}'
+        name = sim.free_name(src.template, self.added[k] + 1)
         try:
             sim.add_part(src.template, name, [x, y, angle])
         except SceneError:
@@ -482,9 +483,16 @@ class Simulator:
                  if b.name == template]
         if not found or found[0].type != 'dynamic':
             parts = ', '.join(self.world.names[i] for i in self.part_indices)
-            raise ValueError(f'template must name a dynamic body of the scene ({parts}), got '
-                             f'{template!r}')
+            raise UnknownPart(f'template must name a dynamic body of the scene ({parts}), got '
+                              f'{template!r}')
         return found[0]
+
+    def free_name(self, base: str, first: int = 1) -> str:
+        """``<base>_<k>`` for the first k from ``first`` on that no body has."""
+        k = first
+        while f'{base}_{k}' in self.world.names:
+            k += 1
+        return f'{base}_{k}'
 
     def remove_part(self, name: str) -> None:
         """The dynamic part ``name`` leaves the simulation (a sink, a part taken away)."""
@@ -506,7 +514,7 @@ class Simulator:
         names = self.world.names
         if name not in names or not self.world.dynamic[names.index(name)]:
             parts = ', '.join(names[i] for i in self.part_indices)
-            raise ValueError(f'no part named {name!r}; parts: {parts}')
+            raise UnknownPart(f'no part named {name!r}; parts: {parts}')
         return names.index(name)
 
     def _now(self) -> list:

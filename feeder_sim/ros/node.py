@@ -69,7 +69,7 @@ from feeder_sim.output import frames
 from feeder_sim.output.frames import Frame, open_recorder, record_frame
 from feeder_sim.output.recording import RecordingError, SENSOR_TOPICS
 from feeder_sim.ros import messages as msgs
-from feeder_sim.simulator import Simulator
+from feeder_sim.simulator import Simulator, UnknownPart
 
 NODE_NAME = 'feeder_sim'
 _NS = 1_000_000_000
@@ -698,26 +698,21 @@ class SimNode(Node):
         self.get_logger().info(what)
 
     def _on_spawn_entity(self, request, response):
-        names = set(self.sim.world.names)
         name = request.name
-        if not name or (name in names and request.allow_renaming):
-            base = name or request.uri or 'part'
-            k = 1
-            while f'{base}_{k}' in names:
-                k += 1
-            name = f'{base}_{k}'
-        elif name in names:
+        taken = name in self.sim.world.names
+        if not name or (taken and request.allow_renaming):
+            name = self.sim.free_name(name or request.uri or 'part')
+        elif taken:
             return self._result(response, 'RESULT_INCORRECT_STATE',
                                 f'a body is already named {name!r} (set allow_renaming to get '
                                 'a free name)')
         try:
             pose, velocity = self._planar(request.initial_pose, request.initial_twist)
             self.sim.add_part(request.uri, name, pose, velocity)
+        except UnknownPart as err:
+            return self._result(response, 'RESULT_NOT_FOUND', str(err))
         except (ValueError, SceneError) as err:
-            missing = not any(b.name == request.uri and b.type == 'dynamic'
-                              for b in self.sim.scene.bodies)
-            return self._result(response, 'RESULT_NOT_FOUND' if missing and 'template' in
-                                str(err) else 'RESULT_OPERATION_FAILED', str(err))
+            return self._result(response, 'RESULT_OPERATION_FAILED', str(err))
         response.entity_name = name
         self._changed_parts(f'spawned {name} ({request.uri}) at t = {self.sim.t:.6g} s')
         return self._result(response, 'RESULT_OK')
@@ -725,7 +720,7 @@ class SimNode(Node):
     def _on_delete_entity(self, request, response):
         try:
             self.sim.remove_part(request.entity)
-        except ValueError as err:
+        except UnknownPart as err:
             return self._result(response, 'RESULT_NOT_FOUND', str(err))
         self._changed_parts(f'deleted {request.entity} at t = {self.sim.t:.6g} s')
         return self._result(response, 'RESULT_OK')
@@ -734,11 +729,9 @@ class SimNode(Node):
         try:
             pose, velocity = self._planar(request.pose, request.twist)
             self.sim.set_part_pose(request.entity, pose, velocity)
-        except ValueError as err:
-            code = 'RESULT_NOT_FOUND' if 'no part named' in str(err) else \
-                'RESULT_OPERATION_FAILED'
-            return self._result(response, code, str(err))
-        except SceneError as err:
+        except UnknownPart as err:
+            return self._result(response, 'RESULT_NOT_FOUND', str(err))
+        except (ValueError, SceneError) as err:
             return self._result(response, 'RESULT_OPERATION_FAILED', str(err))
         self._changed_parts(f'placed {request.entity} at t = {self.sim.t:.6g} s')
         return self._result(response, 'RESULT_OK')
