@@ -371,15 +371,19 @@ class _Decoder:
 
 
 def _messages(path: Path) -> Iterator[tuple[str, int, object]]:
-    """(topic, time ns, decoded message) of the topics the replay uses; undecodable messages
-    are skipped with one warning per topic (foreign logs may use other layouts)."""
+    """(topic, time ns, decoded message) of the topics the replay uses (the sensors': see
+    :func:`_sensor_value`); undecodable messages are skipped with one warning per topic
+    (foreign logs may use other layouts)."""
     decode = _Decoder()
     failed: set[str] = set()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter('always')
-        for topic, t_ns, data in read_messages(path, _Decoder.TOPICS):
+        for topic, t_ns, data in read_messages(path):
+            sensor = topic.startswith(SENSOR_PREFIX)
+            if not sensor and topic not in _Decoder.TOPICS:
+                continue
             try:
-                message = decode(topic, data)
+                message = _sensor_value(topic, data) if sensor else decode(topic, data)
             except Exception as err:  # noqa: BLE001 - skip what this replay cannot read
                 if topic not in failed:
                     failed.add(topic)
@@ -401,10 +405,14 @@ def _read_log(path: Path) -> _Log:
         [int(m.get('log_time_ns', 0)) - origin for name, m in records.items()
          if name.startswith('episode_')], np.int64))
     poses, contacts, track, vibration = [], [], [], []
-    sensors = _read_sensors(path, origin)
+    sensors: dict[str, list] = {}
     end_t = 0
     for topic, t_ns, message in _messages(path):
         t_ns -= origin
+        if topic.startswith(SENSOR_PREFIX):
+            if message is not None:
+                sensors.setdefault(topic[len(SENSOR_PREFIX):], []).append((t_ns, message))
+            continue
         end_t = max(end_t, t_ns)
         if topic == TOPIC_PART_POSES:
             poses.append((t_ns, *message))
@@ -418,6 +426,8 @@ def _read_log(path: Path) -> _Log:
     poses.sort(key=lambda m: m[0])
     contacts.sort(key=lambda m: m[0])
     vibration.sort(key=lambda m: m[0])
+    for samples in sensors.values():
+        samples.sort(key=lambda m: m[0])
     return _Log(
         path=path, metadata=metadata, scene=_scene_from(metadata, path),
         pose_t=np.array([m[0] for m in poses], np.int64),
@@ -437,29 +447,17 @@ def _read_log(path: Path) -> _Log:
     )
 
 
-def _read_sensors(path: Path, origin: int) -> dict[str, list]:
-    """The sensors' messages (``recording.SENSOR_TOPICS``): blocked as 0/1, counts, and
-    (part, orientation) pairs, by topic suffix, in time order."""
-    out: dict[str, list] = {}
-    for topic, t_ns, data in read_messages(path):
-        if not topic.startswith(SENSOR_PREFIX):
-            continue
-        r = _Cdr(data)
-        try:
-            if topic.endswith('/blocked'):
-                value = r.u8()
-            elif topic.endswith('/count'):
-                value = r.u32()
-            elif topic.endswith('/passed'):
-                value = (r.string(), r.string())
-            else:
-                continue
-        except (ValueError, IndexError, struct.error):
-            continue
-        out.setdefault(topic[len(SENSOR_PREFIX):], []).append((t_ns - origin, value))
-    for samples in out.values():
-        samples.sort(key=lambda x: x[0])
-    return out
+def _sensor_value(topic: str, data: bytes):
+    """A sensor's message (``recording.SENSOR_TOPICS``): blocked as 0/1, a count, a (part,
+    orientation) pair; None for a topic of another kind."""
+    r = _Cdr(data)
+    if topic.endswith('/blocked'):
+        return r.u8()
+    if topic.endswith('/count'):
+        return r.u32()
+    if topic.endswith('/passed'):
+        return r.string(), r.string()
+    return None
 
 
 def _concat(arrays: list[np.ndarray], empty_shape: tuple[int, ...]) -> np.ndarray:
