@@ -215,16 +215,13 @@ class SimNode(Node):
             self._open_recording(value['record_path'], value['record_flush_period'],
                                  value['log_time'])
 
-        world = self.sim.world
         self._parts = self.sim.part_indices
-        self._others = np.flatnonzero(world.body_type != DYNAMIC)
-        self._s_start = dict(zip(self.sim.part_poses()[0], self.sim.track_coordinates()[0]))
         self._line_width, self._auto_impulse_scale = self._marker_sizes()
         self._last_markers = -np.inf
-        self._world = world
-        self._outlines = msgs.Outlines([b.outlines for b in world.scene.bodies], world.names,
-                                       self.frame_id, self._line_width)
+        self._world = None
+        self._s_start: dict[str, float] = {}   # where each part started along the track, m
         self._gone: list[str] = []          # parts taken away since the last markers
+        self._follow_parts()
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         overridable = QoSOverridingOptions.with_default_policies()
@@ -387,7 +384,8 @@ class SimNode(Node):
         world = self.sim.world
         if world is self._world:
             return
-        self._gone += sorted(set(self._world.names) - set(world.names))
+        if self._world is not None:
+            self._gone += sorted(set(self._world.names) - set(world.names))
         self._world = world
         self._parts = self.sim.part_indices
         self._others = np.flatnonzero(world.body_type != DYNAMIC)
