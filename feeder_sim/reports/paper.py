@@ -30,7 +30,7 @@ import time
 import numpy as np
 
 from feeder_sim.model.scene import load_scene, Scene
-from feeder_sim.reports.pointmass import Conveyor, mean_speed
+from feeder_sim.reports.pointmass import conveyor_of, mean_speed
 from feeder_sim.simulator import Simulator
 
 log = logging.getLogger('feeder_sim')
@@ -74,19 +74,6 @@ def steady_speed(scene: Scene | str, *, warmup_s: float = 1.0, measure_s: float 
     s0 = float(sim.track_coordinates()[0][0])
     sim.advance_to(warmup_s + measure_s)
     return (float(sim.track_coordinates()[0][0]) - s0) / measure_s
-
-
-def _conveyor(scene: Scene, gamma: float | None = None, friction_impulse: bool = True
-              ) -> Conveyor:
-    """The point-mass conveyor of a one-part track scene (optionally at another Gamma)."""
-    track, part = scene.bodies[0], scene.bodies[-1]
-    vib, theta = track.vibration, track.pose[2]
-    omega = 2 * math.pi * vib.frequency
-    if gamma is None:
-        gamma = vib.amplitude * omega ** 2 * math.sin(vib.angle) / (9.81 * math.cos(theta))
-    return Conveyor(psi=vib.angle, theta=theta, mu_s=part.mu_static, mu_k=part.mu_dynamic,
-                    gamma=gamma, frequency_hz=vib.frequency,
-                    frictionless_landing=not friction_impulse)
 
 
 def _with_gamma(scene: Scene, gamma: float) -> Scene:
@@ -163,7 +150,7 @@ def flip(out: Path, gammas: Iterable[float] = np.round(np.arange(1.6, 3.01, 0.1)
         row = {'gamma': float(gamma)}
         for friction_impulse in (True, False):
             key = 'with' if friction_impulse else 'without'
-            row[f'point_mass_{key}_mps'] = mean_speed(_conveyor(base, gamma, friction_impulse))
+            row[f'point_mass_{key}_mps'] = mean_speed(conveyor_of(base, gamma, friction_impulse))
             scene = _with_gamma(base, gamma)
             scene = replace(scene, solver=replace(scene.solver,
                                                   friction_impulse=friction_impulse))
@@ -177,7 +164,7 @@ def flip(out: Path, gammas: Iterable[float] = np.round(np.arange(1.6, 3.01, 0.1)
                      label=f'{key} friction impulse')
         axes[1].plot(g, [1e3 * r[f'position_1s_{key}_m'] for r in rows], style,
                      label=f'{key} friction impulse')
-    shipped = _conveyor(base).gamma
+    shipped = conveyor_of(base).gamma
     for ax in axes:
         ax.axhline(0.0, color='k', lw=0.8)
         ax.axvline(shipped, color='grey', ls=':', label=f'shipped scenes (Γ = {shipped:.2f})')

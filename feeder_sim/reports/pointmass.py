@@ -424,3 +424,21 @@ def trajectory(c: Conveyor, t_end: float, n_samples: int) -> dict:
     length = c.g_n / c.omega ** 2
     return {'t': t, 'x': x * length, 'v': v * c.velocity_scale, 'z': z * length,
             'phase': phase}
+
+
+def conveyor_of(scene, gamma: float | None = None, friction_impulse: bool = True) -> Conveyor:
+    """The point-mass conveyor of a track scene (a ``model.scene.Scene``): its track's drive
+    angle, slope and frequency, its first part's friction on the track (the contact rule: the
+    geometric mean of the two bodies'), the scene's gravity and the normal acceleration
+    amplitude ``Gamma = a omega^2 sin(psi) / (g cos(theta))`` (or ``gamma`` instead)."""
+    track = next(b for b in scene.bodies if b.name == scene.track)
+    part = next(b for b in scene.bodies if b.type == 'dynamic')
+    vib, theta = track.vibration, float(track.pose[2])
+    g = float(np.linalg.norm(scene.gravity))
+    if gamma is None:
+        omega = 2 * math.pi * vib.frequency
+        gamma = vib.amplitude * omega ** 2 * math.sin(vib.angle) / (g * math.cos(theta))
+    return Conveyor(psi=vib.angle, theta=theta,
+                    mu_s=math.sqrt(track.mu_static * part.mu_static),
+                    mu_k=math.sqrt(track.mu_dynamic * part.mu_dynamic), gamma=gamma,
+                    frequency_hz=vib.frequency, g=g, frictionless_landing=not friction_impulse)

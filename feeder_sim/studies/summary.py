@@ -20,7 +20,7 @@ import numpy as np
 from scipy import stats
 
 from feeder_sim.model.scene import Scene
-from feeder_sim.reports.pointmass import Conveyor, mean_speed
+from feeder_sim.reports.pointmass import conveyor_of, mean_speed
 from feeder_sim.studies.spec import scene_of_design, StudySpec
 
 
@@ -94,20 +94,9 @@ def metric_statistics(spec: StudySpec, trials: list[dict]) -> dict[str, Any]:
 
 
 def pointmass_speed(scene: Scene) -> float:
-    """The point-mass theory's mean conveying speed (m/s) on the scene's track: its drive's
-    angle to the track, the track's slope, the part's friction on it (the contact rule), the
-    normal acceleration amplitude (reports.pointmass, physics reference section 4.3)."""
-    track = next(b for b in scene.bodies if b.name == scene.track)
-    part = next(b for b in scene.bodies if b.type == 'dynamic')
-    vib = track.vibration
-    g = float(np.linalg.norm(scene.gravity))
-    theta = float(track.pose[2])
-    omega = 2 * math.pi * vib.frequency
-    mu_s = math.sqrt(track.mu_static * part.mu_static)
-    mu_k = math.sqrt(track.mu_dynamic * part.mu_dynamic)
-    gamma = vib.amplitude * omega ** 2 * math.sin(vib.angle) / (g * math.cos(theta))
-    return mean_speed(Conveyor(psi=vib.angle, theta=theta, mu_s=mu_s, mu_k=mu_k, gamma=gamma,
-                               frequency_hz=vib.frequency, g=g))
+    """The point-mass theory's mean conveying speed (m/s) on the scene's track
+    (reports.pointmass, physics reference section 4.3)."""
+    return mean_speed(conveyor_of(scene))
 
 
 def best_design(spec: StudySpec, designs: list[dict]) -> dict | None:
