@@ -13,8 +13,8 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / 'feeder_sim'
 
-RANK = {'_jit': 0, 'model': 1, 'contact': 2, 'stepping': 3, 'simulator': 4, 'output': 5,
-        'run': 6, 'reports': 7, 'ros': 7, 'studies': 7, 'cli': 8}
+RANK = {'_jit': 0, '_arena': 0, 'model': 1, 'contact': 2, 'stepping': 3, 'simulator': 4,
+        'output': 5, 'run': 6, 'reports': 7, 'ros': 7, 'studies': 7, 'cli': 8}
 PHYSICS = ('model', 'contact', 'stepping')
 FORBIDDEN_IN_PHYSICS = ('rclpy', 'mcap', 'mcap_ros2', 'matplotlib', 'rerun', 'dask',
                         'distributed', 'pyarrow', 'rosgraph_msgs', 'geometry_msgs',
@@ -75,7 +75,8 @@ def test_imports_go_one_way(module):
     assert not upward, f'{module} imports a higher layer: {upward}'
 
 
-@pytest.mark.parametrize('module', [m for m in MODULES if _layer(m) in PHYSICS + ('_jit',)])
+@pytest.mark.parametrize('module', [m for m in MODULES
+                                    if _layer(m) in PHYSICS + ('_jit', '_arena')])
 def test_physics_imports_no_ros_mcap_plotting_or_dask(module):
     bad = sorted(m for m in IMPORTS[module] if m.split('.')[0] in FORBIDDEN_IN_PHYSICS)
     assert not bad, f'{module} imports {bad}'

@@ -10,18 +10,19 @@ from typing import NamedTuple
 
 import numpy as np
 
+from feeder_sim._arena import empty_f, empty_i, full_b, full_i, gather, heap_arena
 from feeder_sim._jit import inner, jit
 
 
 @inner
-def _argsort(keys):
+def _argsort(ar, keys):
     """Stable argsort (bottom-up merge sort). Hand-written because ``np.argsort`` with a
     ``kind`` compiles numba's generic sorts and string handling: seconds of compile time."""
     n = keys.shape[0]
-    idx = np.empty(n, np.int64)
+    idx = empty_i(ar, n)
     for i in range(n):
         idx[i] = i
-    tmp = np.empty(n, np.int64)
+    tmp = empty_i(ar, n)
     width = 1
     while width < n:
         lo = 0
@@ -52,13 +53,13 @@ def _argsort(keys):
 
 
 @inner
-def sorted_unique(x):
+def sorted_unique(ar, x):
     """``np.unique`` of an integer array (its sorted distinct values), at a fraction of the
     compile time: numba's version brings its generic sort along."""
     n = x.shape[0]
-    out = np.empty(n, x.dtype)
+    out = empty_i(ar, n)
     m = 0
-    for i in _argsort(x):
+    for i in _argsort(ar, x):
         if m == 0 or x[i] != out[m - 1]:
             out[m] = x[i]
             m += 1
@@ -66,11 +67,11 @@ def sorted_unique(x):
 
 
 @inner
-def _where(mask):
+def _where(ar, mask):
     n = 0
     for v in mask:
         n += v
-    out = np.empty(n, np.int64)
+    out = empty_i(ar, n)
     q = 0
     for i in range(mask.shape[0]):
         if mask[i]:
@@ -147,6 +148,14 @@ class NarrowPhaseTolerances(NamedTuple):
 @jit
 def narrow_phase(w, nw, lo, hi, piece_start, piece_body, take, dyn, piece_width, coord, radius,
                  active, internal, nxt, prv, elen, tol):
+    """:func:`narrow_phase_in` with ordinary (heap) arrays."""
+    return narrow_phase_in(heap_arena(), w, nw, lo, hi, piece_start, piece_body, take, dyn,
+                           piece_width, coord, radius, active, internal, nxt, prv, elen, tol)
+
+
+@inner
+def narrow_phase_in(ar, w, nw, lo, hi, piece_start, piece_body, take, dyn, piece_width, coord,
+                    radius, active, internal, nxt, prv, elen, tol):
     """Vertex-edge contacts of all piece pairs whose AABBs are within ``tol.bp_margin_m``
     (``tol`` a :class:`NarrowPhaseTolerances`).
 
@@ -159,22 +168,22 @@ def narrow_phase(w, nw, lo, hi, piece_start, piece_body, take, dyn, piece_width,
     depth_fraction, tie_rel = tol.depth_fraction, tol.tie_rel
     param_tol, angle_tol = tol.param_tol, tol.angle_tol
     n_p = piece_body.shape[0]
-    ids = np.empty(n_p, np.int64)
+    ids = empty_i(ar, n_p)
     n_t = 0
     for p in range(n_p):
         if take[p]:
             ids[n_t] = p
             n_t += 1
     ids = ids[:n_t]
-    key = np.empty(n_t)
+    key = empty_f(ar, n_t)
     for q in range(n_t):
         key[q] = lo[ids[q], 0]
-    order = ids[_argsort(key)]
+    order = gather(ar, ids, _argsort(ar, key))
     cap = 64
-    out_v = np.empty(cap, np.int64)
-    out_e = np.empty(cap, np.int64)
-    out_g = np.empty(cap)
-    out_t = np.empty(cap)
+    out_v = empty_i(ar, cap)
+    out_e = empty_i(ar, cap)
+    out_g = empty_f(ar, cap)
+    out_t = empty_f(ar, cap)
     n_out = np.int64(0)      # never a literal: typing would compile _vertex_edge for it
     n_pairs = 0
     for ii in range(n_t):
@@ -198,10 +207,10 @@ def narrow_phase(w, nw, lo, hi, piece_start, piece_body, take, dyn, piece_width,
             if need > cap:
                 while need > cap:
                     cap *= 2
-                nv = np.empty(cap, np.int64)
-                ne = np.empty(cap, np.int64)
-                ng = np.empty(cap)
-                nt = np.empty(cap)
+                nv = empty_i(ar, cap)
+                ne = empty_i(ar, cap)
+                ng = empty_f(ar, cap)
+                nt = empty_f(ar, cap)
                 for q in range(n_out):
                     nv[q], ne[q], ng[q], nt[q] = out_v[q], out_e[q], out_g[q], out_t[q]
                 out_v, out_e, out_g, out_t = nv, ne, ng, nt
@@ -223,6 +232,14 @@ def narrow_phase(w, nw, lo, hi, piece_start, piece_body, take, dyn, piece_width,
 @jit
 def clean_contacts(vert, edge, gap, t, cover_start, cover_lo, cover_hi, nxt, canon, vbody,
                    nw, n_vertices, n_bodies, param_tol, angle_tol):
+    """:func:`clean_contacts_in` with ordinary (heap) arrays."""
+    return clean_contacts_in(heap_arena(), vert, edge, gap, t, cover_start, cover_lo, cover_hi,
+                             nxt, canon, vbody, nw, n_vertices, n_bodies, param_tol, angle_tol)
+
+
+@inner
+def clean_contacts_in(ar, vert, edge, gap, t, cover_start, cover_lo, cover_hi, nxt, canon,
+                      vbody, nw, n_vertices, n_bodies, param_tol, angle_tol):
     """The clean-up of ``collision.find_contacts`` after the narrow phase: contacts on
     internal edge portions and one of each vertex-on-vertex pair dropped from the raw
     contacts, duplicates of one canonical vertex against parallel edges of one body merged
@@ -230,7 +247,7 @@ def clean_contacts(vert, edge, gap, t, cover_start, cover_lo, cover_hi, nxt, can
     (pieces are numbered in vertex order, so vertex and edge imply the pieces). Returns the
     indices of the kept contacts in that order."""
     k = vert.shape[0]
-    keep = np.ones(k, np.bool_)
+    keep = full_b(ar, k, True)
     # contacts on internal portions of compound-body edges
     for i in range(k):
         e = edge[i]
@@ -241,7 +258,7 @@ def clean_contacts(vert, edge, gap, t, cover_start, cover_lo, cover_hi, nxt, can
                     and ((tc < hi - param_tol) or (hi >= 1.0 - param_tol))):
                 keep[i] = False
     # vertex on vertex: keep the contact whose edge belongs to the lower-numbered body
-    end = -np.ones(k, np.int64)
+    end = full_i(ar, k, -1)
     n_cand = 0
     for i in range(k):
         if abs(t[i]) <= param_tol:
@@ -251,13 +268,13 @@ def clean_contacts(vert, edge, gap, t, cover_start, cover_lo, cover_hi, nxt, can
         if end[i] >= 0:
             n_cand += 1
     if n_cand >= 2:
-        rev = np.empty(n_cand, np.int64)
+        rev = empty_i(ar, n_cand)
         q = 0
         for i in range(k):
             if end[i] >= 0:
                 rev[q] = canon[vert[i]] * n_vertices + canon[end[i]]
                 q += 1
-        rev = rev[_argsort(rev)]
+        rev = gather(ar, rev, _argsort(ar, rev))
         for i in range(k):
             if end[i] >= 0 and vbody[edge[i]] > vbody[vert[i]]:
                 key = canon[end[i]] * n_vertices + canon[vert[i]]
@@ -270,16 +287,16 @@ def clean_contacts(vert, edge, gap, t, cover_start, cover_lo, cover_hi, nxt, can
                         hi_ = mid
                 if lo_ < n_cand and rev[lo_] == key:
                     keep[i] = False
-    idx = _where(keep)
+    idx = _where(ar, keep)
     n = idx.shape[0]
     # duplicates: one canonical vertex against parallel edges of one body
     if n >= 2:
-        gkey = np.empty(n, np.int64)
+        gkey = empty_i(ar, n)
         for q in range(n):
             i = idx[q]
             gkey[q] = ((vbody[vert[i]] * n_vertices + canon[vert[i]]) * n_bodies
                        + vbody[edge[i]])
-        o = _argsort(gkey)
+        o = _argsort(ar, gkey)
         s0 = 0
         while s0 < n:
             s1 = s0 + 1
@@ -287,7 +304,7 @@ def clean_contacts(vert, edge, gap, t, cover_start, cover_lo, cover_hi, nxt, can
                 s1 += 1
             if s1 - s0 >= 2:
                 # members by (gap, vertex, edge), then keep greedily
-                mem = idx[o[s0:s1]].copy()
+                mem = gather(ar, idx, o[s0:s1])
                 for u in range(1, mem.shape[0]):
                     v = mem[u]
                     p = u - 1
@@ -297,7 +314,7 @@ def clean_contacts(vert, edge, gap, t, cover_start, cover_lo, cover_hi, nxt, can
                         mem[p + 1] = mem[p]
                         p -= 1
                     mem[p + 1] = v
-                kept = np.empty(mem.shape[0], np.int64)
+                kept = empty_i(ar, mem.shape[0])
                 nk = 0
                 for u in range(mem.shape[0]):
                     ci = mem[u]
@@ -314,16 +331,16 @@ def clean_contacts(vert, edge, gap, t, cover_start, cover_lo, cover_hi, nxt, can
                         kept[nk] = ci
                         nk += 1
             s0 = s1
-        idx = _where(keep)
+        idx = _where(ar, keep)
         n = idx.shape[0]
     # final order
-    k1 = np.empty(n, np.int64)
-    k2 = np.empty(n, np.int64)
+    k1 = empty_i(ar, n)
+    k2 = empty_i(ar, n)
     for q in range(n):
         i = idx[q]
         ba, bb = vbody[vert[i]], vbody[edge[i]]
         k1[q] = min(ba, bb) * n_bodies + max(ba, bb)
         k2[q] = vert[i] * n_vertices + edge[i]
-    o2 = _argsort(k2)
-    o1 = _argsort(k1[o2])
-    return idx[o2[o1]]
+    o2 = _argsort(ar, k2)
+    o1 = _argsort(ar, gather(ar, k1, o2))
+    return gather(ar, idx, gather(ar, o2, o1))

@@ -20,6 +20,20 @@ from typing import NamedTuple
 
 import numpy as np
 
+from feeder_sim._arena import (
+    arange_i,
+    copy_i,
+    empty_b,
+    empty_f,
+    empty_f2,
+    empty_i,
+    full_b,
+    full_i,
+    full_i2,
+    heap_arena,
+    zeros_f,
+    zeros_f2,
+)
 from feeder_sim._jit import inner, jit
 from feeder_sim.contact._lcp_kernels import _affine, _dense_residual, dantzig
 
@@ -34,6 +48,12 @@ def _find(parent: np.ndarray, i: int) -> int:
 
 @jit
 def island_groups(n_bodies, dynamic, a, b):
+    """:func:`island_groups_in` with ordinary (heap) arrays."""
+    return island_groups_in(heap_arena(), n_bodies, dynamic, a, b)
+
+
+@inner
+def island_groups_in(ar, n_bodies, dynamic, a, b):
     """Islands of dynamic bodies joined by contacts (static / kinematic bodies never join).
 
     Returns ``(order, starts, bodies, body_starts)``: island i owns the contacts
@@ -42,7 +62,7 @@ def island_groups(n_bodies, dynamic, a, b):
     smallest body index.
     """
     k = a.shape[0]
-    parent = np.arange(n_bodies)
+    parent = arange_i(ar, n_bodies)
     for c in range(k):
         i, j = a[c], b[c]
         if dynamic[i] and dynamic[j]:
@@ -53,46 +73,46 @@ def island_groups(n_bodies, dynamic, a, b):
                 else:
                     parent[ri] = rj
     # island number of every root, ascending root order
-    root_of = np.empty(k, np.int64)
-    used = np.zeros(n_bodies, np.bool_)
+    root_of = empty_i(ar, k)
+    used = full_b(ar, n_bodies, False)
     for c in range(k):
         owner = a[c] if dynamic[a[c]] else b[c]
         r = _find(parent, owner)
         root_of[c] = r
         used[r] = True
-    island_of_root = -np.ones(n_bodies, np.int64)
+    island_of_root = full_i(ar, n_bodies, -1)
     n_isl = 0
     for r in range(n_bodies):
         if used[r]:
             island_of_root[r] = n_isl
             n_isl += 1
     # contacts: counting sort by island, stable
-    starts = np.zeros(n_isl + 1, np.int64)
+    starts = full_i(ar, n_isl + 1, 0)
     for c in range(k):
         starts[island_of_root[root_of[c]] + 1] += 1
     for i in range(n_isl):
         starts[i + 1] += starts[i]
-    fill = starts[:-1].copy()
-    order = np.empty(k, np.int64)
+    fill = copy_i(ar, starts[:-1])
+    order = empty_i(ar, k)
     for c in range(k):
         i = island_of_root[root_of[c]]
         order[fill[i]] = c
         fill[i] += 1
     # bodies: dynamic bodies that appear in a contact, by island then index
-    member = np.zeros(n_bodies, np.bool_)
+    member = full_b(ar, n_bodies, False)
     for c in range(k):
         if dynamic[a[c]]:
             member[a[c]] = True
         if dynamic[b[c]]:
             member[b[c]] = True
-    body_starts = np.zeros(n_isl + 1, np.int64)
+    body_starts = full_i(ar, n_isl + 1, 0)
     for i in range(n_bodies):
         if member[i]:
             body_starts[island_of_root[_find(parent, i)] + 1] += 1
     for i in range(n_isl):
         body_starts[i + 1] += body_starts[i]
-    bfill = body_starts[:-1].copy()
-    bodies = np.empty(body_starts[n_isl], np.int64)
+    bfill = copy_i(ar, body_starts[:-1])
+    bodies = empty_i(ar, body_starts[n_isl])
     for i in range(n_bodies):
         if member[i]:
             isl = island_of_root[_find(parent, i)]
@@ -102,17 +122,17 @@ def island_groups(n_bodies, dynamic, a, b):
 
 
 @inner
-def _rows(a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia):
+def _rows(ar, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia):
     """Per-row Jacobian blocks of contacts: rows [N_0..N_{c-1}, T_0..T_{c-1}].
 
     ``ja[i] = (d, r_a x d)`` acts on body a, ``jb[i] = -(d, r_b x d)`` on body b; ``ma`` /
     ``mb`` are the same blocks multiplied by the inverse mass (so ``dv = M^-1 J^T x``)."""
     c = a.shape[0]
     m = 2 * c
-    ja = np.empty((m, 3))
-    jb = np.empty((m, 3))
-    ma = np.empty((m, 3))
-    mb = np.empty((m, 3))
+    ja = empty_f2(ar, m, 3)
+    jb = empty_f2(ar, m, 3)
+    ma = empty_f2(ar, m, 3)
+    mb = empty_f2(ar, m, 3)
     for i in range(m):
         k = i if i < c else i - c
         if i < c:
@@ -136,13 +156,20 @@ def _rows(a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia):
 
 @jit
 def apply_impulses(dv, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, p_n, p_t):
+    """:func:`apply_impulses_in` with ordinary (heap) arrays."""
+    return apply_impulses_in(heap_arena(), dv, a, b, normal, tangent, r_a, r_b, inv_mass,
+                             inv_inertia, p_n, p_t)
+
+
+@inner
+def apply_impulses_in(ar, dv, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, p_n, p_t):
     """``dv[body] += M^-1 J^T p`` for contact impulses (p_n, p_t); dv is (n_bodies, 3).
 
     Summed like ``IslandJacobian.velocity_change`` (``inv_mass * (J.T @ impulse)``): per body
     and component, the normal rows in contact order, then the tangent rows, then one
     multiplication by the inverse mass, so the velocities match the numpy path."""
     n = dv.shape[0]
-    s = np.zeros((n, 3))
+    s = zeros_f2(ar, n, 3)
     for rows in range(2):
         d = normal if rows == 0 else tangent
         p = p_n if rows == 0 else p_t
@@ -319,6 +346,15 @@ class RowSettings(NamedTuple):
 @jit
 def contact_rows(a, b, point, normal, gap, order, starts, position, v_end, w_end, v_pre, w_pre,
                  mu_s_body, mu_d_body, e_body, piece_a, piece_b, piece_width, settings):
+    """:func:`contact_rows_in` with ordinary (heap) arrays."""
+    return contact_rows_in(heap_arena(), a, b, point, normal, gap, order, starts, position, v_end,
+                           w_end, v_pre, w_pre, mu_s_body, mu_d_body, e_body, piece_a, piece_b,
+                           piece_width, settings)
+
+
+@inner
+def contact_rows_in(ar, a, b, point, normal, gap, order, starts, position, v_end, w_end, v_pre,
+                    w_pre, mu_s_body, mu_d_body, e_body, piece_a, piece_b, piece_width, settings):
     """The per-contact part of ``TimeStepper._contacts`` in one pass (the numpy expressions it
     replaces are quoted; same operations in the same order, so the same bits).
 
@@ -341,17 +377,17 @@ def contact_rows(a, b, point, normal, gap, order, starts, position, v_end, w_end
     friction_impulse, spec_depth = settings.friction_impulse, settings.spec_depth
     reach = settings.reach_m
     n = a.shape[0]
-    size = np.empty(n, np.int64)
+    size = empty_i(ar, n)
     for i in range(starts.shape[0] - 1):
         for q in range(starts[i], starts[i + 1]):
             size[order[q]] = starts[i + 1] - starts[i]
-    r_a = np.empty((n, 2))
-    r_b = np.empty((n, 2))
-    vn_free = np.empty(n)
-    vt_free = np.empty(n)
-    keep = np.empty(n, np.int64)
-    allow = np.zeros(n)
-    spec = np.zeros(n, np.bool_)
+    r_a = empty_f2(ar, n, 2)
+    r_b = empty_f2(ar, n, 2)
+    vn_free = empty_f(ar, n)
+    vt_free = empty_f(ar, n)
+    keep = empty_i(ar, n)
+    allow = zeros_f(ar, n)
+    spec = full_b(ar, n, False)
     m = 0
     for i in range(n):
         ia, ib = a[i], b[i]
@@ -374,21 +410,21 @@ def contact_rows(a, b, point, normal, gap, order, starts, position, v_end, w_end
                 keep[m] = i
                 m += 1
     keep = keep[:m]
-    tangent = np.empty((m, 2))
-    ra = np.empty((m, 2))
-    rb = np.empty((m, 2))
-    mu_s = np.empty(m)
-    mu_d = np.empty(m)
-    rest = np.empty(m)
-    v_n = np.empty(m)
-    v_t = np.empty(m)
-    slip = np.empty(m)
-    pile = np.empty(m, np.bool_)
-    colliding = np.empty(m, np.bool_)
-    b_n = np.empty(m)
-    box = np.empty(m, np.bool_)
-    mu_lo = np.empty(m)
-    mu_hi = np.empty(m)
+    tangent = empty_f2(ar, m, 2)
+    ra = empty_f2(ar, m, 2)
+    rb = empty_f2(ar, m, 2)
+    mu_s = empty_f(ar, m)
+    mu_d = empty_f(ar, m)
+    rest = empty_f(ar, m)
+    v_n = empty_f(ar, m)
+    v_t = empty_f(ar, m)
+    slip = empty_f(ar, m)
+    pile = empty_b(ar, m)
+    colliding = empty_b(ar, m)
+    b_n = empty_f(ar, m)
+    box = empty_b(ar, m)
+    mu_lo = empty_f(ar, m)
+    mu_hi = empty_f(ar, m)
     gap_min = np.inf
     for q in range(m):
         i = keep[q]
@@ -447,11 +483,18 @@ def contact_rows(a, b, point, normal, gap, order, starts, position, v_end, w_end
 
 @jit
 def feature_gaps(idx, vertex, edge, vertices, normals, vertex_body, position, cos, sin):
+    """:func:`feature_gaps_in` with ordinary (heap) arrays."""
+    return feature_gaps_in(heap_arena(), idx, vertex, edge, vertices, normals, vertex_body,
+                           position, cos, sin)
+
+
+@inner
+def feature_gaps_in(ar, idx, vertex, edge, vertices, normals, vertex_body, position, cos, sin):
     """Gaps of the vertex-edge features of contacts ``idx`` at another configuration:
     ``collision.evaluate_gaps`` (its gap) with the same arithmetic, so the same bits; ``cos`` /
     ``sin`` of the body angles are numpy's. Used by the position projection, which needs the
     gaps of a few contacts, where evaluate_gaps' numpy calls cost ~70 us whatever their number."""
-    out = np.empty(idx.shape[0])
+    out = empty_f(ar, idx.shape[0])
     for q in range(idx.shape[0]):
         i = idx[q]
         v, e = vertex[i], edge[i]
@@ -478,15 +521,15 @@ _R_WIDTH = 32
 
 
 @inner
-def _pgs_records(a, b, ja, jb, ma, mb, step, diag, b_n, b_t, mu_lo, mu_hi, inv_mass,
+def _pgs_records(ar, a, b, ja, jb, ma, mb, step, diag, b_n, b_t, mu_lo, mu_hi, inv_mass,
                  inv_inertia):
     """Everything a sweep reads about contact k in row k of one (c, 32) array, so that a sweep
     streams through memory once instead of gathering from a dozen arrays, and per contact
     whether its vertex / edge body is fixed (zero inverse mass and inertia)."""
     c = a.shape[0]
-    R = np.empty((c, _R_WIDTH))
-    fixed_a = np.empty(c, np.bool_)
-    fixed_b = np.empty(c, np.bool_)
+    R = empty_f2(ar, c, _R_WIDTH)
+    fixed_a = empty_b(ar, c)
+    fixed_b = empty_b(ar, c)
     for k in range(c):
         t = k + c
         for q in range(3):
@@ -587,7 +630,7 @@ def _pgs_island(lo_c, hi_c, a, b, R, fixed_a, fixed_b, dv, box, x_n, x_t, sweeps
 
 
 @inner
-def _island_dense(lo_c, hi_c, c, a, b, ja, jb, ma, mb, b_n, b_t, box, mu_lo, mu_hi):
+def _island_dense(ar, lo_c, hi_c, c, a, b, ja, jb, ma, mb, b_n, b_t, box, mu_lo, mu_hi):
     """The assembled problem of contacts lo_c..hi_c-1 (``dynamics.assemble``'s layout: the
     normals, then the friction rows of contacts with ``box``): A, b, normal_of, mu_lo, mu_hi,
     and for each row its contact and whether it is a friction row."""
@@ -596,8 +639,8 @@ def _island_dense(lo_c, hi_c, c, a, b, ja, jb, ma, mb, b_n, b_t, box, mu_lo, mu_
     for k in range(lo_c, hi_c):
         if box[k]:
             m += 1
-    rc = np.empty(m, np.int64)
-    rf = np.zeros(m, np.bool_)
+    rc = empty_i(ar, m)
+    rf = full_b(ar, m, False)
     p = nc
     for q in range(nc):
         rc[q] = lo_c + q
@@ -605,11 +648,11 @@ def _island_dense(lo_c, hi_c, c, a, b, ja, jb, ma, mb, b_n, b_t, box, mu_lo, mu_
             rc[p] = lo_c + q
             rf[p] = True
             p += 1
-    A = np.empty((m, m))
-    bb = np.empty(m)
-    nof = -np.ones(m, np.int64)
-    lo = np.zeros(m)
-    hi = np.zeros(m)
+    A = empty_f2(ar, m, m)
+    bb = empty_f(ar, m)
+    nof = full_i(ar, m, -1)
+    lo = zeros_f(ar, m)
+    hi = zeros_f(ar, m)
     for i in range(m):
         k = rc[i]
         gi = k + c if rf[i] else k
@@ -640,6 +683,14 @@ def _island_dense(lo_c, hi_c, c, a, b, ja, jb, ma, mb, b_n, b_t, box, mu_lo, mu_
 @jit
 def solve_small(select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, b_n,
                 b_t, box, mu_lo, mu_hi, x_n, x_t, w_t):
+    """:func:`solve_small_in` with ordinary (heap) arrays."""
+    return solve_small_in(heap_arena(), select, starts, a, b, normal, tangent, r_a, r_b, inv_mass,
+                          inv_inertia, b_n, b_t, box, mu_lo, mu_hi, x_n, x_t, w_t)
+
+
+@inner
+def solve_small_in(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, b_n,
+                   b_t, box, mu_lo, mu_hi, x_n, x_t, w_t):
     """The islands with ``select`` (contacts grouped by ``starts``, CSR) by Baraff-Dantzig
     (``dantzig``), from scratch.
 
@@ -650,18 +701,18 @@ def solve_small(select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_i
     residual (``lcp.residual``), the pivots and the Dantzig abort codes (pass, retry)."""
     n_isl = starts.shape[0] - 1
     c = a.shape[0]
-    ja, jb, ma, mb = _rows(a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia)
-    res = np.zeros(n_isl)
-    work = np.zeros(n_isl, np.int64)
-    codes = np.zeros((n_isl, 2), np.int64)
+    ja, jb, ma, mb = _rows(ar, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia)
+    res = zeros_f(ar, n_isl)
+    work = full_i(ar, n_isl, 0)
+    codes = full_i2(ar, n_isl, 2, 0)
     for isl in range(n_isl):
         if not select[isl]:
             continue
-        A, bb, nof, lo, hi, rc, rf = _island_dense(starts[isl], starts[isl + 1], c, a, b, ja,
-                                                   jb, ma, mb, b_n, b_t, box, mu_lo, mu_hi)
+        A, bb, nof, lo, hi, rc, rf = _island_dense(ar, starts[isl], starts[isl + 1], c, a, b,
+                                                   ja, jb, ma, mb, b_n, b_t, box, mu_lo, mu_hi)
         m = bb.shape[0]
-        x, piv, c1, c2 = dantzig(A, bb, nof, lo, hi, 50 * m + 50)
-        wv = _affine(A, x, bb)
+        x, piv, c1, c2 = dantzig(ar, A, bb, nof, lo, hi, 50 * m + 50)
+        wv = _affine(ar, A, x, bb)
         res[isl] = _dense_residual(A, bb, x, wv, nof, lo, hi)
         work[isl] = piv
         codes[isl, 0], codes[isl, 1] = c1, c2
@@ -680,6 +731,15 @@ def solve_small(select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_i
 @jit
 def solve_pgs(select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, b_n, b_t,
               box, mu_lo, mu_hi, x_n, x_t, w_t, dv, tol, max_sweeps, check, omega):
+    """:func:`solve_pgs_in` with ordinary (heap) arrays."""
+    return solve_pgs_in(heap_arena(), select, starts, a, b, normal, tangent, r_a, r_b, inv_mass,
+                        inv_inertia, b_n, b_t, box, mu_lo, mu_hi, x_n, x_t, w_t, dv, tol,
+                        max_sweeps, check, omega)
+
+
+@inner
+def solve_pgs_in(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, b_n,
+                 b_t, box, mu_lo, mu_hi, x_n, x_t, w_t, dv, tol, max_sweeps, check, omega):
     """The islands with ``select`` by projected Gauss-Seidel in velocity form
     (``_pgs_island``).
 
@@ -691,20 +751,20 @@ def solve_pgs(select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_ine
     ``lcp.residual``, the velocity residual and the sweeps."""
     c = a.shape[0]
     n_isl = starts.shape[0] - 1
-    ja, jb, ma, mb = _rows(a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia)
-    diag = np.empty(2 * c)
+    ja, jb, ma, mb = _rows(ar, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia)
+    diag = empty_f(ar, 2 * c)
     for i in range(2 * c):
         diag[i] = (ja[i, 0] * ma[i, 0] + ja[i, 1] * ma[i, 1] + ja[i, 2] * ma[i, 2]
                    + jb[i, 0] * mb[i, 0] + jb[i, 1] * mb[i, 1] + jb[i, 2] * mb[i, 2])
-    step = np.zeros(2 * c)
+    step = zeros_f(ar, 2 * c)
     for i in range(2 * c):
         if diag[i] > 0.0:
             step[i] = omega / diag[i]
-    R, fixed_a, fixed_b = _pgs_records(a, b, ja, jb, ma, mb, step, diag, b_n, b_t, mu_lo, mu_hi,
-                                       inv_mass, inv_inertia)
-    res = np.zeros(n_isl)
-    vres = np.zeros(n_isl)
-    work = np.zeros(n_isl, np.int64)
+    R, fixed_a, fixed_b = _pgs_records(ar, a, b, ja, jb, ma, mb, step, diag, b_n, b_t, mu_lo,
+                                       mu_hi, inv_mass, inv_inertia)
+    res = zeros_f(ar, n_isl)
+    vres = zeros_f(ar, n_isl)
+    work = full_i(ar, n_isl, 0)
     for isl in range(n_isl):
         if not select[isl]:
             continue

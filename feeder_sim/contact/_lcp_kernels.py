@@ -13,6 +13,20 @@ from __future__ import annotations
 
 import numpy as np
 
+from feeder_sim._arena import (
+    arange_i,
+    copy_f,
+    copy_f2,
+    empty_f,
+    empty_f2,
+    empty_i,
+    full_b,
+    full_i,
+    heap_arena,
+    mark,
+    release,
+    zeros_f,
+)
 from feeder_sim._jit import inner, jit
 
 # ---------------------------------------------------------------------------------------------
@@ -20,10 +34,10 @@ from feeder_sim._jit import inner, jit
 
 
 @inner
-def _affine(A, x, b):
+def _affine(ar, A, x, b):
     """``A @ x + b`` (a loop: cheaper to compile than the BLAS binding, as fast at this size)."""
     m, n = A.shape
-    out = np.empty(m)
+    out = empty_f(ar, m)
     for i in range(m):
         s = 0.0
         for j in range(n):
@@ -94,14 +108,15 @@ _OK, _PIVOT_CAP, _NO_STEP, _NONFINITE, _BAD_END, _CYCLING, _BUDGET, _NUMERIC = r
 
 
 @inner
-def _dz_solve(M, r, amax, cnt):
+def _dz_solve(ar, M, r, amax, cnt):
     """``lcp._Dantzig._solve``: closed forms for n <= 2, else LU with partial pivoting; a
     (nearly) singular system (counted in cnt[1]) gets the basic solution of complete
     pivoting with two steps of iterative refinement. M and r are not modified."""
     n = r.shape[0]
-    y = np.zeros(n)
+    y = zeros_f(ar, n)
     if n == 0:
         return y
+    level = mark(ar)
     if n == 1:
         if abs(M[0, 0]) > 1e-13 * amax:
             y[0] = r[0] / M[0, 0]
@@ -114,8 +129,8 @@ def _dz_solve(M, r, amax, cnt):
             y[1] = (a * r[1] - c * r[0]) / det
             return y
     else:
-        LU = M.copy()
-        z = r.copy()
+        LU = copy_f2(ar, M)
+        z = copy_f(ar, r)
         ok = True
         for k in range(n):
             p = k
@@ -150,15 +165,16 @@ def _dz_solve(M, r, amax, cnt):
                     y[k] = s / LU[k, k]
                     finite = finite and (y[k] - y[k] == 0.0)
                 if finite:
+                    release(ar, level)
                     return y
     # Redundant clamped rows (a tiny pivot): keep the consistent part exact instead of
     # sending the null-space component to 1e16.
     cnt[1] += 1
     for k in range(n):
         y[k] = 0.0
-    LU = M.copy()
-    rowp = np.arange(n)
-    colp = np.arange(n)
+    LU = copy_f2(ar, M)
+    rowp = arange_i(ar, n)
+    colp = arange_i(ar, n)
     rank = n
     pmax = 0.0
     for k in range(n):
@@ -183,9 +199,9 @@ def _dz_solve(M, r, amax, cnt):
             LU[i, k] = f
             for j in range(k + 1, n):
                 LU[i, j] -= f * LU[k, j]
-    res = r.copy()
-    z = np.empty(n)
-    u = np.empty(n)
+    res = copy_f(ar, r)
+    z = empty_f(ar, n)
+    u = empty_f(ar, n)
     for _ in range(3):            # solve, then two refinement steps on the residual
         for i in range(n):
             s = res[rowp[i]]
@@ -206,23 +222,27 @@ def _dz_solve(M, r, amax, cnt):
             for j in range(n):
                 s -= M[i, j] * y[j]
             res[i] = s
+    release(ar, level)
     return y
 
 
 @inner
-def _dz_direction(A, b, st, nof, lo, hi, d, sigma, amax, cnt):
+def _dz_direction(ar, A, b, st, nof, lo, hi, d, sigma, amax, cnt):
     """``lcp._Dantzig._direction`` (d >= 0): the unit move (dx, dw) of x_d by sigma keeping
     clamped rows' w fixed, slaved friction columns substituted into their normals' (the
     free unknowns are the clamped rows and d). With d < 0 the ``_polish`` solve instead:
     the clamped rows alone with w = 0, returned as (x, w)."""
     m = A.shape[0]
+    dx = zeros_f(ar, m)
+    dw = zeros_f(ar, m)
+    level = mark(ar)
     nc = 0
     for i in range(m):
         if st[i] == _C:
             nc += 1
     nv = nc + 1 if d >= 0 else nc
-    V = np.empty(nv, np.int64)
-    pos = -np.ones(m, np.int64)
+    V = empty_i(ar, nv)
+    pos = full_i(ar, m, -1)
     q = 0
     for i in range(m):
         if st[i] == _C:
@@ -232,12 +252,12 @@ def _dz_direction(A, b, st, nof, lo, hi, d, sigma, amax, cnt):
     if d >= 0:
         V[nc] = d
         pos[d] = nc
-    cols = np.empty((m, nv))
+    cols = empty_f2(ar, m, nv)
     for p in range(nv):
         for i in range(m):
             cols[i, p] = A[i, V[p]]
-    coef = np.zeros(m)          # slaved rows: x_k = coef[k] x_nof[k]
-    slaved = np.zeros(m, np.bool_)
+    coef = zeros_f(ar, m)       # slaved rows: x_k = coef[k] x_nof[k]
+    slaved = full_b(ar, m, False)
     for k in range(m):
         s = st[k]
         if s == _L or s == _H:
@@ -249,21 +269,19 @@ def _dz_direction(A, b, st, nof, lo, hi, d, sigma, amax, cnt):
                         cols[i, p] += c * A[i, k]
                 coef[k] = c
                 slaved[k] = True
-    xv = np.empty(nv)
+    xv = empty_f(ar, nv)
     if d >= 0:
         xv[nc] = sigma
     if nc:
-        M = np.empty((nc, nc))
-        r = np.empty(nc)
+        M = empty_f2(ar, nc, nc)
+        r = empty_f(ar, nc)
         for p in range(nc):
             for s in range(nc):
                 M[p, s] = cols[V[p], s]
             r[p] = -sigma * cols[V[p], nc] if d >= 0 else -b[V[p]]
-        y = _dz_solve(M, r, amax, cnt)
+        y = _dz_solve(ar, M, r, amax, cnt)
         for p in range(nc):
             xv[p] = y[p]
-    dx = np.zeros(m)
-    dw = np.zeros(m)
     for i in range(m):
         s = 0.0 if d >= 0 else b[i]
         for p in range(nv):
@@ -274,11 +292,12 @@ def _dz_direction(A, b, st, nof, lo, hi, d, sigma, amax, cnt):
     for k in range(m):
         if slaved[k]:
             dx[k] = coef[k] * dx[nof[k]]
+    release(ar, level)
     return dx, dw
 
 
 @inner
-def dantzig(A, b, nof, lo, hi, max_pivots):
+def dantzig(ar, A, b, nof, lo, hi, max_pivots):
     """``lcp._dantzig``: a Baraff-Dantzig pass from x = 0 and, with friction, when it
     aborts, one retry treating every normal before any friction row. Returns (x, pivots,
     abort code of the pass, abort code of the retry); codes are 0 on success."""
@@ -293,19 +312,20 @@ def dantzig(A, b, nof, lo, hi, max_pivots):
             amax = max(amax, abs(A[i, j]))
     if amax == 0.0:
         amax = 1.0
-    st = np.empty(m, np.int64)
-    x = np.zeros(m)
-    w = np.empty(m)
-    nodefer = np.zeros(m, np.bool_)
-    cnt = np.zeros(2, np.int64)           # pivots, singular solves
-    best_x = np.zeros(m)
+    st = empty_i(ar, m)
+    x = zeros_f(ar, m)
+    w = empty_f(ar, m)
+    nodefer = full_b(ar, m, False)
+    cnt = full_i(ar, 2, 0)                # pivots, singular solves
+    best_x = zeros_f(ar, m)
     best_r = np.inf
-    codes = np.zeros(2, np.int64)
-    ct = np.empty(2 * m + 4)              # ratio-test candidates: step, priority, row, event
-    cp = np.empty(2 * m + 4, np.int64)
-    ci = np.empty(2 * m + 4, np.int64)
-    cc = np.empty(2 * m + 4, np.int64)
-    seen = np.empty(4 * m + 16, np.int64)
+    codes = full_i(ar, 2, 0)
+    ct = empty_f(ar, 2 * m + 4)           # ratio-test candidates: step, priority, row, event
+    cp = empty_i(ar, 2 * m + 4)
+    ci = empty_i(ar, 2 * m + 4)
+    cc = empty_i(ar, 2 * m + 4)
+    seen = empty_i(ar, 4 * m + 16)
+    level = mark(ar)        # each direction's scratch is given back before the next
     total = 0
     for attempt in range(2):
         normals_first = attempt == 1
@@ -348,7 +368,8 @@ def dantzig(A, b, nof, lo, hi, max_pivots):
                 if abs(w[k]) <= eps:
                     dependent = False
                     if not nodefer[k]:
-                        dx, dw = _dz_direction(A, b, st, nof, lo, hi, k, 1.0, amax, cnt)
+                        release(ar, level)
+                        dx, dw = _dz_direction(ar, A, b, st, nof, lo, hi, k, 1.0, amax, cnt)
                         dxmax = 1.0
                         for v in dx:
                             dxmax = max(dxmax, abs(v))
@@ -406,7 +427,8 @@ def dantzig(A, b, nof, lo, hi, max_pivots):
                 if cnt[0] >= cap:
                     code = _PIVOT_CAP
                     break
-                dx, dw = _dz_direction(A, b, st, nof, lo, hi, d, sigma, amax, cnt)
+                release(ar, level)
+                dx, dw = _dz_direction(ar, A, b, st, nof, lo, hi, d, sigma, amax, cnt)
                 finite = True
                 dxmax = 1.0
                 for r_ in range(m):
@@ -538,6 +560,7 @@ def dantzig(A, b, nof, lo, hi, max_pivots):
                         prev_i = -1
                         continue
                     if n_seen == seen.shape[0]:
+                        # from the heap: the arena's level is reset at every direction
                         grown = np.empty(2 * n_seen, np.int64)
                         for q in range(n_seen):
                             grown[q] = seen[q]
@@ -595,7 +618,8 @@ def dantzig(A, b, nof, lo, hi, max_pivots):
                 nc += st[i] == _C
             if nc and (cnt[0] > 4 or cnt[1] > 0):
                 no_row = m - m - 1      # -1, typed like d (a literal would compile anew)
-                xp, wp = _dz_direction(A, b, st, nof, lo, hi, no_row, 0.0, amax, cnt)
+                release(ar, level)
+                xp, wp = _dz_direction(ar, A, b, st, nof, lo, hi, no_row, 0.0, amax, cnt)
                 finite = True
                 for v in xp:
                     finite = finite and (v - v == 0.0)
@@ -603,6 +627,7 @@ def dantzig(A, b, nof, lo, hi, max_pivots):
                                <= _dense_residual(A, b, x, w, nof, lo, hi)):
                     for k in range(m):
                         x[k] = xp[k]
+            release(ar, level)
             return x, total, _OK, _OK
         r = _dense_residual(A, b, x, w, nof, lo, hi)
         if r < best_r:
@@ -611,6 +636,7 @@ def dantzig(A, b, nof, lo, hi, max_pivots):
                 best_x[k] = x[k]
         if nfr == 0 or total >= max_pivots:
             break
+    release(ar, level)
     return best_x, total, codes[0], codes[1]
 
 
@@ -735,6 +761,6 @@ def lcp_dantzig(W, b_full, friction, mu_lo, mu_hi, slave):
     A, P, rows, normal_of, lo, hi = reduce_lcp(W, friction, mu_lo, mu_hi, slave)
     b = b_full[rows]
     m = b.shape[0]
-    x, pivots, code, retry = dantzig(A, b, normal_of, lo, hi, 50 * m + 50)
+    x, pivots, code, retry = dantzig(heap_arena(), A, b, normal_of, lo, hi, 50 * m + 50)
     res = lcp_residual(A, b, x, normal_of, lo, hi)
     return P @ x, x, A @ x + b, res, pivots, (code, retry), (A, P, b, normal_of, lo, hi)

@@ -21,25 +21,44 @@ from typing import NamedTuple
 
 import numpy as np
 
+from feeder_sim._arena import (
+    borrow,
+    concat,
+    copy_f,
+    copy_f2,
+    copy_i,
+    empty_b,
+    empty_f,
+    empty_f2,
+    empty_i,
+    full_b,
+    full_i,
+    gather,
+    gather_rows,
+    release,
+    zeros_f,
+    zeros_f2,
+)
 from feeder_sim._jit import inner, jit
 from feeder_sim.contact._collision_kernels import (
     _argsort,
-    clean_contacts,
-    narrow_phase,
+    _where,
+    clean_contacts_in,
+    narrow_phase_in,
     NarrowPhaseTolerances,
 )
 from feeder_sim.contact._island_kernels import (
-    apply_impulses,
-    contact_rows,
+    apply_impulses_in,
+    contact_rows_in,
     drift,
-    feature_gaps,
-    island_groups,
+    feature_gaps_in,
+    island_groups_in,
     RowSettings,
-    solve_pgs,
-    solve_small,
+    solve_pgs_in,
+    solve_small_in,
     speed_bounds,
 )
-from feeder_sim.model.vibration import segment_motion
+from feeder_sim.model.vibration import DriveSegments, segment_motion
 
 # what advance returns
 DONE, REFERENCE, GROW = 0, 1, 2
@@ -219,18 +238,18 @@ def _prescribed(t, drives, driven_idx, position, velocity):
 
 
 @inner
-def _find_contacts(shapes, position, angle, dynamic, margin, narrow):
+def _find_contacts(ar, shapes, position, angle, dynamic, margin, narrow):
     """``collision.find_contacts(shapes, position, angle, dynamic, margin=margin)``: the
     kept contacts' (vertex, edge, gap, edge_param, world vertices, world normals)."""
     nv = shapes.vertices.shape[0]
     n = position.shape[0]
-    cos = np.empty(n)
-    sin = np.empty(n)
+    cos = empty_f(ar, n)
+    sin = empty_f(ar, n)
     for i in range(n):
         cos[i] = math.cos(angle[i])
         sin[i] = math.sin(angle[i])
-    w = np.empty((nv, 2))
-    nw = np.empty((nv, 2))
+    w = empty_f2(ar, nv, 2)
+    nw = empty_f2(ar, nv, 2)
     for k in range(nv):
         i = shapes.vertex_body[k]
         c, s = cos[i], sin[i]
@@ -241,8 +260,8 @@ def _find_contacts(shapes, position, angle, dynamic, margin, narrow):
         nw[k, 0] = c * x - s * y
         nw[k, 1] = s * x + c * y
     n_p = shapes.piece_body.shape[0]
-    lo = np.empty((n_p, 2))
-    hi = np.empty((n_p, 2))
+    lo = empty_f2(ar, n_p, 2)
+    hi = empty_f2(ar, n_p, 2)
     for p in range(n_p):
         for j in range(2):
             a = w[shapes.piece_start[p], j]
@@ -252,40 +271,41 @@ def _find_contacts(shapes, position, angle, dynamic, margin, narrow):
                 b = max(b, w[k, j])
             lo[p, j] = a
             hi[p, j] = b
-    take = np.ones(n_p, np.bool_)
-    dyn = np.empty(n_p, np.bool_)
+    take = full_b(ar, n_p, True)
+    dyn = empty_b(ar, n_p)
     any_dyn = False
     for p in range(n_p):
         dyn[p] = dynamic[shapes.piece_body[p]]
         any_dyn = any_dyn or dyn[p]
-    empty_i = np.zeros(0, np.int64)
-    empty_f = np.zeros(0)
+    none_i = empty_i(ar, 0)
+    none_f = empty_f(ar, 0)
     finite = True
     for p in range(n_p):
         for j in range(2):
             finite = finite and lo[p, j] - lo[p, j] == 0.0 and hi[p, j] - hi[p, j] == 0.0
     if not finite:
         # find_contacts refuses non-finite bounds: the reference step raises its error
-        return empty_i, empty_i, empty_f, empty_f, w, nw, False
+        return none_i, none_i, none_f, none_f, w, nw, False
     if n_p < 2 or not any_dyn:
-        return empty_i, empty_i, empty_f, empty_f, w, nw, True
-    coord = np.empty(n)
+        return none_i, none_i, none_f, none_f, w, nw, True
+    coord = empty_f(ar, n)
     for i in range(n):
         coord[i] = max(abs(position[i, 0]), abs(position[i, 1]))
-    vert, edge, gap, t, _ = narrow_phase(
-        w, nw, lo, hi, shapes.piece_start, shapes.piece_body, take, dyn, shapes.piece_width,
+    vert, edge, gap, t, _ = narrow_phase_in(
+        ar, w, nw, lo, hi, shapes.piece_start, shapes.piece_body, take, dyn, shapes.piece_width,
         coord, shapes.piece_radius, shapes.vertex_active, shapes.edge_internal,
         shapes.next_vertex, shapes.prev_vertex, shapes.edge_length,
         NarrowPhaseTolerances(margin + narrow.bp_margin_m, margin, narrow.depth_m,
                               narrow.depth_fraction, narrow.tie_rel, narrow.param_tol,
                               narrow.angle_tol))
     if vert.shape[0] == 0:
-        return empty_i, empty_i, empty_f, empty_f, w, nw, True
-    o = clean_contacts(vert, edge, gap, t, shapes.cover_start, shapes.cover_lo,
-                       shapes.cover_hi, shapes.next_vertex, shapes.vertex_canon,
-                       shapes.vertex_body, nw, nv, shapes.n_piece_bodies, narrow.param_tol,
-                       narrow.angle_tol)
-    return vert[o], edge[o], gap[o], t[o], w, nw, True
+        return none_i, none_i, none_f, none_f, w, nw, True
+    o = clean_contacts_in(ar, vert, edge, gap, t, shapes.cover_start, shapes.cover_lo,
+                          shapes.cover_hi, shapes.next_vertex, shapes.vertex_canon,
+                          shapes.vertex_body, nw, nv, shapes.n_piece_bodies, narrow.param_tol,
+                          narrow.angle_tol)
+    return (gather(ar, vert, o), gather(ar, edge, o), gather(ar, gap, o), gather(ar, t, o), w, nw,
+            True)
 
 
 @inner
@@ -301,11 +321,11 @@ def _nan_max(x, sel):
 
 
 @inner
-def _warm_lookup(warm, keys):
+def _warm_lookup(ar, warm, keys):
     """``_Warm.lookup``: the previous impulses of these features, 0 where one is new."""
     k = keys.shape[0]
-    x_n = np.zeros(k)
-    x_t = np.zeros(k)
+    x_n = zeros_f(ar, k)
+    x_t = zeros_f(ar, k)
     size = warm.keys.shape[0]
     if size == 0:
         return x_n, x_t
@@ -322,24 +342,6 @@ def _warm_lookup(warm, keys):
             x_n[q] = warm.p_n[pos]
             x_t[q] = warm.p_t[pos]
     return x_n, x_t
-
-
-@inner
-def _take(x, idx):
-    """``x[idx]`` of a 1-d array."""
-    out = np.empty(idx.shape[0], x.dtype)
-    for q in range(idx.shape[0]):
-        out[q] = x[idx[q]]
-    return out
-
-
-@inner
-def _take_v(x, idx):
-    out = np.empty((idx.shape[0], 2))
-    for q in range(idx.shape[0]):
-        out[q, 0] = x[idx[q], 0]
-        out[q, 1] = x[idx[q], 1]
-    return out
 
 
 @inner
@@ -368,17 +370,17 @@ def _record_batch(ints, floats, sel, rows, work, res, converged):
 
 
 @inner
-def _solve(n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b_t, box, mu_lo,
+def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b_t, box, mu_lo,
            mu_hi, mu_s, mu_d, keys, todo, warm, st, ints, floats, msgs, n_msgs):
     """``TimeStepper._solve`` (arrays in island order): the impulses, or ``ok`` False where
     the compiled Dantzig missed ``lcp_tol`` (the reference step takes over)."""
     k = a.shape[0]
     n_isl = starts.shape[0] - 1
-    lens = np.empty(n_isl, np.int64)
-    rows = np.empty(n_isl, np.int64)
-    isl = np.empty(k, np.int64)
-    small = np.zeros(n_isl, np.bool_)
-    large = np.zeros(n_isl, np.bool_)
+    lens = empty_i(ar, n_isl)
+    rows = empty_i(ar, n_isl)
+    isl = empty_i(ar, k)
+    small = full_b(ar, n_isl, False)
+    large = full_b(ar, n_isl, False)
     any_large = False
     for i in range(n_isl):
         lens[i] = starts[i + 1] - starts[i]
@@ -390,27 +392,27 @@ def _solve(n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b_t, 
         small[i] = todo[i] and rows[i] <= st.direct_max_rows
         large[i] = todo[i] and not small[i]
         any_large = any_large or large[i]
-    may_slide = np.empty(k, np.bool_)
+    may_slide = empty_b(ar, k)
     any_slide = False
     for q in range(k):
         may_slide[q] = box[q] and mu_d[q] < mu_s[q]
         any_slide = any_slide or may_slide[q]
     if any_large:
         # PGS starts from the previous step's impulses (Dantzig from scratch)
-        x_n, x_t = _warm_lookup(warm, keys)
+        x_n, x_t = _warm_lookup(ar, warm, keys)
         for q in range(k):
             if not todo[isl[q]]:
                 x_n[q] = 0.0
                 x_t[q] = 0.0
     else:
-        x_n, x_t = np.zeros(k), np.zeros(k)
-    lo = mu_lo.copy()
-    hi = mu_hi.copy()
-    v_t_new = np.zeros(k)
-    ones = np.ones(n_isl, np.bool_)
+        x_n, x_t = zeros_f(ar, k), zeros_f(ar, k)
+    lo = copy_f(ar, mu_lo)
+    hi = copy_f(ar, mu_hi)
+    v_t_new = zeros_f(ar, k)
+    ones = full_b(ar, n_isl, True)
     for again in (True, False):
         if small.any():
-            res, work, codes = solve_small(small, starts, a, b, normal, tangent, r_a, r_b,
+            res, work, codes = solve_small_in(ar, small, starts, a, b, normal, tangent, r_a, r_b,
                                            bodies.inv_mass, bodies.inv_inertia, b_n, b_t, box,
                                            lo, hi, x_n, x_t, v_t_new)
             for i in range(n_isl):
@@ -418,12 +420,12 @@ def _solve(n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b_t, 
                     return x_n, x_t, False
             _record_batch(ints, floats, small, rows, work, res, ones)
         if large.any():
-            res, vres, work = solve_pgs(large, starts, a, b, normal, tangent, r_a, r_b,
+            res, vres, work = solve_pgs_in(ar, large, starts, a, b, normal, tangent, r_a, r_b,
                                         bodies.inv_mass, bodies.inv_inertia, b_n, b_t, box, lo,
-                                        hi, x_n, x_t, v_t_new, np.zeros((n_bodies, 3)),
+                                        hi, x_n, x_t, v_t_new, zeros_f2(ar, n_bodies, 3),
                                         st.pgs_tol_mps, st.pgs_max_sweeps, st.pgs_check,
                                         st.pgs_omega)
-            conv = np.empty(n_isl, np.bool_)
+            conv = empty_b(ar, n_isl)
             for i in range(n_isl):
                 conv[i] = vres[i] <= st.pgs_tol_mps
             _record_batch(ints, floats, large, rows, work, res, conv)
@@ -441,7 +443,7 @@ def _solve(n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b_t, 
         # dynamics.second_pass
         if not (again and any_slide):
             break
-        redo = np.zeros(n_isl, np.bool_)
+        redo = full_b(ar, n_isl, False)
         any_saturated = False
         for q in range(k):
             i = isl[q]
@@ -471,22 +473,22 @@ def _solve(n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b_t, 
 
 
 @inner
-def _step(h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, floats, rep, msgs,
+def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, floats, rep, msgs,
           n_msgs):
     """One ``TimeStepper.step`` of ``h`` from ``t0``: ``(code, warm)``; the state, the
     counters and the reports are written only when the step is taken (``DONE``)."""
     n = pos.shape[0]
     dynamic, dyn_idx = bodies.dynamic, bodies.dyn_idx
     half = 0.5 * h
-    mid_pos = pos.copy()
-    mid_ang = ang.copy()
-    mid_vel = vel.copy()
+    mid_pos = copy_f2(ar, pos)
+    mid_ang = copy_f(ar, ang)
+    mid_vel = copy_f2(ar, vel)
     drift(dyn_idx, pos, ang, vel, om, half, mid_pos, mid_ang)
     _prescribed(t0 + 0.5 * h, drives, bodies.driven_idx, mid_pos, mid_vel)
     # free end-of-step velocities; driven bodies' positions and velocities at t0 + h
-    end_pos = mid_pos.copy()
-    end_vel = mid_vel.copy()
-    end_om = om.copy()
+    end_pos = copy_f2(ar, mid_pos)
+    end_vel = copy_f2(ar, mid_vel)
+    end_om = copy_f(ar, om)
     for i in range(n):
         if dynamic[i]:
             for j in range(2):
@@ -502,7 +504,7 @@ def _step(h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, floa
     base = 1.5 * h * (v_max + v_kin + g * h) + slack
     margin = 1.5 * h * (_larger(v_max + v_kin, closing) + g * h) + slack
 
-    vert, edge, gap, param, w, nw, finite = _find_contacts(shapes, mid_pos, mid_ang, dynamic,
+    vert, edge, gap, param, w, nw, finite = _find_contacts(ar, shapes, mid_pos, mid_ang, dynamic,
                                                            margin, st.narrow)
     if not finite:
         return REFERENCE, warm
@@ -513,7 +515,7 @@ def _step(h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, floa
         for q in range(k):
             far = far or gap[q] > base
         if far:
-            sel = np.empty(k, np.int64)
+            sel = empty_i(ar, k)
             m = 0
             for q in range(k):
                 ia = shapes.vertex_body[vert[q]]
@@ -526,36 +528,37 @@ def _step(h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, floa
                     sel[m] = q
                     m += 1
             sel = sel[:m]
-            vert, edge, gap, param = (_take(vert, sel), _take(edge, sel),
-                                      _take(gap, sel), _take(param, sel))
+            vert, edge, gap, param = (gather(ar, vert, sel), gather(ar, edge, sel),
+                                      gather(ar, gap, sel), gather(ar, param, sel))
             k = m
 
-    new_pos = pos.copy()
-    new_ang = ang.copy()
-    new_vel = vel.copy()
-    new_om = om.copy()
-    step_ints = np.zeros(ints.shape[0], np.int64)
-    step_floats = floats.copy()
-    step_msgs = n_msgs.copy()
-    projected = np.zeros(0, np.bool_)
+    new_pos = copy_f2(ar, pos)
+    new_ang = copy_f(ar, ang)
+    new_vel = copy_f2(ar, vel)
+    new_om = copy_f(ar, om)
+    step_ints = full_i(ar, ints.shape[0], 0)
+    step_floats = copy_f(ar, floats)
+    step_msgs = copy_i(ar, n_msgs)
+    projected = full_b(ar, 0, False)
     m = 0
     if k:
         # TimeStepper._contacts
-        body_a = _take(shapes.vertex_body, vert)
-        body_b = _take(shapes.vertex_body, edge)
-        piece_a = _take(shapes.vertex_piece, vert)
-        piece_b = _take(shapes.vertex_piece, edge)
-        point = _take_v(w, vert)
-        normal = _take_v(nw, edge)
-        order, starts, isl_bodies, body_starts = island_groups(n, dynamic, body_a, body_b)
+        body_a = gather(ar, shapes.vertex_body, vert)
+        body_b = gather(ar, shapes.vertex_body, edge)
+        piece_a = gather(ar, shapes.vertex_piece, vert)
+        piece_b = gather(ar, shapes.vertex_piece, edge)
+        point = gather_rows(ar, w, vert)
+        normal = gather_rows(ar, nw, edge)
+        order, starts, isl_bodies, body_starts = island_groups_in(ar, n, dynamic, body_a,
+                                                                  body_b)
         slip_tol = _larger(st.slip_tol_mps, h * spin)
         settings = RowSettings(h, st.touch_m, st.direct_max_rows, st.push_out, st.push_max_mps,
                                st.slop_m, -2.0 * g * h, slip_tol, st.friction_impulse,
                                st.spec_depth, margin)
         (keep, tangent, r_a, r_b, mu_s, mu_d, rest, v_n_free, v_t_free, v_t_pre, pile,
-         colliding, b_n, box, mu_lo, mu_hi, gap_min) = contact_rows(
-            body_a, body_b, point, normal, gap, order, starts, mid_pos, end_vel, end_om, vel, om,
-            bodies.mu_static, bodies.mu_dynamic, bodies.restitution, piece_a, piece_b,
+         colliding, b_n, box, mu_lo, mu_hi, gap_min) = contact_rows_in(
+            ar, body_a, body_b, point, normal, gap, order, starts, mid_pos, end_vel, end_om, vel,
+            om, bodies.mu_static, bodies.mu_dynamic, bodies.restitution, piece_a, piece_b,
             shapes.piece_width, settings)
         m = keep.shape[0]
     n_spare = 0
@@ -566,36 +569,37 @@ def _step(h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, floa
         rows0, steps0 = rep.counts[0], rep.counts[1]
         if rows0 + m > rep.gap.shape[0] or steps0 + 1 > rep.step_end.shape[0]:
             return GROW, warm
-        spare = np.ones(k, np.bool_)
+        spare = full_b(ar, k, True)
         for q in range(m):
             spare[keep[q]] = False
         if m < k:
-            left_out = np.flatnonzero(spare)
-            body_a, body_b = _take(body_a, keep), _take(body_b, keep)
-            s_vert, s_edge = _take(vert, left_out), _take(edge, left_out)
-            s_point, s_normal = _take_v(point, left_out), _take_v(normal, left_out)
-            s_a = _take(shapes.vertex_body, s_vert)
-            s_b = _take(shapes.vertex_body, s_edge)
-            vert, edge = _take(vert, keep), _take(edge, keep)
-            piece_a, piece_b = _take(piece_a, keep), _take(piece_b, keep)
-            point, normal = _take_v(point, keep), _take_v(normal, keep)
-            gap, param = _take(gap, keep), _take(param, keep)
-            order, starts, isl_bodies, body_starts = island_groups(n, dynamic, body_a, body_b)
+            left_out = _where(ar, spare)
+            body_a, body_b = gather(ar, body_a, keep), gather(ar, body_b, keep)
+            s_vert, s_edge = gather(ar, vert, left_out), gather(ar, edge, left_out)
+            s_point, s_normal = gather_rows(ar, point, left_out), gather_rows(ar, normal, left_out)
+            s_a = gather(ar, shapes.vertex_body, s_vert)
+            s_b = gather(ar, shapes.vertex_body, s_edge)
+            vert, edge = gather(ar, vert, keep), gather(ar, edge, keep)
+            piece_a, piece_b = gather(ar, piece_a, keep), gather(ar, piece_b, keep)
+            point, normal = gather_rows(ar, point, keep), gather_rows(ar, normal, keep)
+            gap, param = gather(ar, gap, keep), gather(ar, param, keep)
+            order, starts, isl_bodies, body_starts = island_groups_in(ar, n, dynamic, body_a,
+                                                                      body_b)
             n_spare = k - m
         step_floats[F_MAX_PENETRATION] = _larger(step_floats[F_MAX_PENETRATION], -gap_min)
-        projected = np.empty(m, np.bool_)
+        projected = empty_b(ar, m)
         any_pile = False
         for q in range(m):
             projected[q] = not pile[q]
             any_pile = any_pile or pile[q]
         if n_spare and any_pile:
             # TimeStepper._outside_piles: piles are not projected
-            in_pile = np.zeros(n, np.bool_)
+            in_pile = full_b(ar, n, False)
             for q in range(m):
                 if pile[q]:
                     in_pile[body_a[q]] = True
                     in_pile[body_b[q]] = True
-            ok = np.empty(n_spare, np.int64)
+            ok = empty_i(ar, n_spare)
             n_ok = 0
             for q in range(n_spare):
                 if not ((in_pile[s_a[q]] and dynamic[s_a[q]])
@@ -603,21 +607,21 @@ def _step(h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, floa
                     ok[n_ok] = q
                     n_ok += 1
             ok = ok[:n_ok]
-            s_vert, s_edge = _take(s_vert, ok), _take(s_edge, ok)
-            s_point, s_normal = _take_v(s_point, ok), _take_v(s_normal, ok)
-            s_a, s_b = _take(s_a, ok), _take(s_b, ok)
+            s_vert, s_edge = gather(ar, s_vert, ok), gather(ar, s_edge, ok)
+            s_point, s_normal = gather_rows(ar, s_point, ok), gather_rows(ar, s_normal, ok)
+            s_a, s_b = gather(ar, s_a, ok), gather(ar, s_b, ok)
             n_spare = n_ok
         nv = shapes.vertices.shape[0]
-        keys = np.empty(m, np.int64)
+        keys = empty_i(ar, m)
         for q in range(m):
             keys[q] = vert[q] * nv + edge[q]
-        p_n = np.zeros(m)
-        p_t = np.zeros(m)
+        p_n = zeros_f(ar, m)
+        p_t = zeros_f(ar, m)
         n_isl = starts.shape[0] - 1
         step_ints[I_ISLANDS] += n_isl
         # an island whose normal rows all have b >= 0 is answered by zero impulses
-        b_no = _take(b_n, order)
-        neg = np.zeros(n_isl, np.bool_)
+        b_no = gather(ar, b_n, order)
+        neg = full_b(ar, n_isl, False)
         n_neg = 0
         for i in range(n_isl):
             lo_v = b_no[starts[i]]
@@ -628,23 +632,23 @@ def _step(h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, floa
             n_neg += neg[i]
         step_ints[I_LCP_SOLVES] += n_isl - n_neg
         step_ints[I_TRIVIAL] += n_isl - n_neg
-        a_o, b_o = _take(body_a, order), _take(body_b, order)
-        normal_o, tangent_o = _take_v(normal, order), _take_v(tangent, order)
-        r_a_o, r_b_o = _take_v(r_a, order), _take_v(r_b, order)
+        a_o, b_o = gather(ar, body_a, order), gather(ar, body_b, order)
+        normal_o, tangent_o = gather_rows(ar, normal, order), gather_rows(ar, tangent, order)
+        r_a_o, r_b_o = gather_rows(ar, r_a, order), gather_rows(ar, r_b, order)
         if n_neg:
             x_n, x_t, ok_solve = _solve(
-                n, starts, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o, bodies, b_no,
-                _take(v_t_free, order), _take(box, order), _take(mu_lo, order),
-                _take(mu_hi, order), _take(mu_s, order), _take(mu_d, order),
-                _take(keys, order), neg, warm, st, step_ints, step_floats, msgs, step_msgs)
+                ar, n, starts, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o, bodies, b_no,
+                gather(ar, v_t_free, order), gather(ar, box, order), gather(ar, mu_lo, order),
+                gather(ar, mu_hi, order), gather(ar, mu_s, order), gather(ar, mu_d, order),
+                gather(ar, keys, order), neg, warm, st, step_ints, step_floats, msgs, step_msgs)
             if not ok_solve:
                 return REFERENCE, warm
             for q in range(m):
                 p_n[order[q]] = x_n[q]
                 p_t[order[q]] = x_t[q]
-            dv = np.zeros((n, 3))
-            apply_impulses(dv, body_a, body_b, normal, tangent, r_a, r_b, bodies.inv_mass,
-                           bodies.inv_inertia, p_n, p_t)
+            dv = zeros_f2(ar, n, 3)
+            apply_impulses_in(ar, dv, body_a, body_b, normal, tangent, r_a, r_b,
+                              bodies.inv_mass, bodies.inv_inertia, p_n, p_t)
             for i in range(n):
                 if dynamic[i]:
                     end_vel[i, 0] = end_vel[i, 0] + dv[i, 0]
@@ -652,8 +656,8 @@ def _step(h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, floa
                     end_om[i] = end_om[i] + dv[i, 2]
         for q in range(m):
             step_ints[I_IMPACTS] += colliding[q] and p_n[q] > 0
-        o = _argsort(keys)
-        new_warm = Warm(_take(keys, o), _take(p_n, o), _take(p_t, o))
+        o = _argsort(ar, keys)
+        new_warm = Warm(gather(ar, keys, o), gather(ar, p_n, o), gather(ar, p_t, o))
     else:
         new_warm = warm
 
@@ -672,15 +676,15 @@ def _step(h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, floa
 
     if m and projected.any():
         # TimeStepper._project: positions out along the contact normals
-        cos = np.empty(n)
-        sin = np.empty(n)
+        cos = empty_f(ar, n)
+        sin = empty_f(ar, n)
         for i in range(n):
             cos[i] = math.cos(new_ang[i])
             sin[i] = math.sin(new_ang[i])
-        idx = np.flatnonzero(projected)
-        gap_end = np.zeros(m)
-        got = feature_gaps(idx, vert, edge, shapes.vertices, shapes.normals, shapes.vertex_body,
-                           new_pos, cos, sin)
+        idx = _where(ar, projected)
+        gap_end = zeros_f(ar, m)
+        got = feature_gaps_in(ar, idx, vert, edge, shapes.vertices, shapes.normals,
+                              shapes.vertex_body, new_pos, cos, sin)
         deep_any = False
         for q in range(idx.shape[0]):
             gap_end[idx[q]] = got[q]
@@ -689,14 +693,14 @@ def _step(h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, floa
             if n_spare:
                 # TimeStepper._with_spare: the contacts left out of the velocity solve too
                 kk = m + n_spare
-                c_a = np.concatenate((body_a, s_a))
-                c_b = np.concatenate((body_b, s_b))
-                c_vert = np.concatenate((vert, s_vert))
-                c_edge = np.concatenate((edge, s_edge))
-                c_normal = np.empty((kk, 2))
-                c_tangent = np.empty((kk, 2))
-                c_ra = np.empty((kk, 2))
-                c_rb = np.empty((kk, 2))
+                c_a = concat(ar, body_a, s_a)
+                c_b = concat(ar, body_b, s_b)
+                c_vert = concat(ar, vert, s_vert)
+                c_edge = concat(ar, edge, s_edge)
+                c_normal = empty_f2(ar, kk, 2)
+                c_tangent = empty_f2(ar, kk, 2)
+                c_ra = empty_f2(ar, kk, 2)
+                c_rb = empty_f2(ar, kk, 2)
                 for q in range(kk):
                     for j in range(2):
                         if q < m:
@@ -712,47 +716,48 @@ def _step(h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, floa
                     if q >= m:
                         c_tangent[q, 0] = -c_normal[q, 1]
                         c_tangent[q, 1] = c_normal[q, 0]
-                mask = np.ones(kk, np.bool_)
+                mask = full_b(ar, kk, True)
                 for q in range(m):
                     mask[q] = projected[q]
-                idx = np.flatnonzero(mask)
-                gap_end = np.zeros(kk)
-                got = feature_gaps(idx, c_vert, c_edge, shapes.vertices, shapes.normals,
+                idx = _where(ar, mask)
+                gap_end = zeros_f(ar, kk)
+                got = feature_gaps_in(ar, idx, c_vert, c_edge, shapes.vertices, shapes.normals,
                                    shapes.vertex_body, new_pos, cos, sin)
                 for q in range(idx.shape[0]):
                     gap_end[idx[q]] = got[q]
-                order, starts, isl_bodies, body_starts = island_groups(n, dynamic, c_a, c_b)
-                a_o, b_o = _take(c_a, order), _take(c_b, order)
-                normal_o, tangent_o = _take_v(c_normal, order), _take_v(c_tangent, order)
-                r_a_o, r_b_o = _take_v(c_ra, order), _take_v(c_rb, order)
+                order, starts, isl_bodies, body_starts = island_groups_in(ar, n, dynamic, c_a, c_b)
+                a_o, b_o = gather(ar, c_a, order), gather(ar, c_b, order)
+                normal_o = gather_rows(ar, c_normal, order)
+                tangent_o = gather_rows(ar, c_tangent, order)
+                r_a_o, r_b_o = gather_rows(ar, c_ra, order), gather_rows(ar, c_rb, order)
             kk = order.shape[0]
             n_isl = starts.shape[0] - 1
-            gap_o = _take(gap_end, order)
-            deep_o = np.empty(kk, np.bool_)
-            rhs = np.empty(kk)
+            gap_o = gather(ar, gap_end, order)
+            deep_o = empty_b(ar, kk)
+            rhs = empty_f(ar, kk)
             for q in range(kk):
                 deep_o[q] = gap_o[q] < -st.projection_slop_m
                 rhs[q] = gap_o[q] + st.projection_slop_m
-            sel = np.zeros(n_isl, np.bool_)
-            lens = np.empty(n_isl, np.int64)
+            sel = full_b(ar, n_isl, False)
+            lens = empty_i(ar, n_isl)
             for i in range(n_isl):
                 lens[i] = starts[i + 1] - starts[i]
                 for q in range(starts[i], starts[i + 1]):
                     sel[i] = sel[i] or deep_o[q]
-            zeros = np.zeros(kk)
-            x_n = np.zeros(kk)
-            res, work, codes = solve_small(sel, starts, a_o, b_o, normal_o, tangent_o, r_a_o,
-                                           r_b_o, bodies.inv_mass, bodies.inv_inertia, rhs,
-                                           zeros, np.zeros(kk, np.bool_), zeros, zeros, x_n,
-                                           np.zeros(kk), np.zeros(kk))
+            zeros = zeros_f(ar, kk)
+            x_n = zeros_f(ar, kk)
+            res, work, codes = solve_small_in(ar, sel, starts, a_o, b_o, normal_o, tangent_o,
+                                              r_a_o, r_b_o, bodies.inv_mass, bodies.inv_inertia,
+                                              rhs, zeros, full_b(ar, kk, False), zeros, zeros,
+                                              x_n, zeros_f(ar, kk), zeros_f(ar, kk))
             for i in range(n_isl):
                 if sel[i] and res[i] > st.lcp_tol:
                     return REFERENCE, warm
             _record_batch(step_ints, step_floats, sel, lens, work, res, sel)
-            dv = np.zeros((n, 3))
-            apply_impulses(dv, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o, bodies.inv_mass,
-                           bodies.inv_inertia, x_n, zeros)
-            sunk = np.empty(kk)
+            dv = zeros_f2(ar, n, 3)
+            apply_impulses_in(ar, dv, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o,
+                              bodies.inv_mass, bodies.inv_inertia, x_n, zeros)
+            sunk = empty_f(ar, kk)
             for q in range(kk):
                 x = -gap_o[q]
                 sunk[q] = (x if x > 0.0 or x != x else 0.0) * (1.0 if deep_o[q] else 0.0)
@@ -812,16 +817,54 @@ def _step(h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, floa
 
 @jit
 def advance(t, t_end, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, floats, rep,
-            msgs, n_msgs):
+            msgs, n_msgs, arenas):
     """``TimeStepper.advance`` from ``t`` to ``t_end`` (s) by ``st.time_step_s``, the last
     step shortened to land on ``t_end``: ``(code, t, warm)``, where ``code`` is ``DONE`` or
-    why the step at ``t`` is left to the caller (``REFERENCE``, ``GROW``)."""
+    why the step at ``t`` is left to the caller (``REFERENCE``, ``GROW``).
+
+    A step's scratch comes from one of the two ``arenas`` (:mod:`feeder_sim._arena`), reset
+    when the step starts; steps alternate between them because the impulses a step leaves
+    for the next one's warm start live in its arena. They leave as ordinary arrays."""
     h = st.time_step_s
+    code = DONE
+    n = 0
+    scratch = (borrow(arenas[0]), borrow(arenas[1]))
+    # everything below works on views no kernel owns (``_arena.borrow``): Python holds the
+    # arrays until the call returns
+    pos, ang, vel, om = borrow(pos), borrow(ang), borrow(vel), borrow(om)
+    ints, floats, msgs, n_msgs = borrow(ints), borrow(floats), borrow(msgs), borrow(n_msgs)
+    warm = Warm(borrow(warm.keys), borrow(warm.p_n), borrow(warm.p_t))
+    bodies = StepBodies(
+        borrow(bodies.dynamic), borrow(bodies.dyn_idx), borrow(bodies.driven_idx),
+        borrow(bodies.inv_mass), borrow(bodies.inv_inertia), borrow(bodies.radius_m),
+        borrow(bodies.mu_static), borrow(bodies.mu_dynamic), borrow(bodies.restitution),
+        borrow(bodies.gravity), bodies.g)
+    shapes = StepShapes(
+        borrow(shapes.vertices), borrow(shapes.normals), borrow(shapes.piece_start),
+        borrow(shapes.piece_body), borrow(shapes.piece_radius), borrow(shapes.vertex_body),
+        borrow(shapes.vertex_piece), borrow(shapes.next_vertex), borrow(shapes.prev_vertex),
+        borrow(shapes.edge_length), borrow(shapes.piece_width), borrow(shapes.vertex_active),
+        borrow(shapes.edge_internal), borrow(shapes.cover_start), borrow(shapes.cover_lo),
+        borrow(shapes.cover_hi), borrow(shapes.vertex_canon), shapes.n_piece_bodies)
+    drives = DriveSegments(
+        borrow(drives.direction), borrow(drives.base_m), borrow(drives.start_s),
+        borrow(drives.amplitude_m), borrow(drives.omega_rad_s), borrow(drives.phase_rad),
+        borrow(drives.offset_m), borrow(drives.blend_s))
+    rep = Reports(
+        borrow(rep.body_a), borrow(rep.piece_a), borrow(rep.vertex_a), borrow(rep.body_b),
+        borrow(rep.piece_b), borrow(rep.edge_b), borrow(rep.point), borrow(rep.normal),
+        borrow(rep.gap), borrow(rep.edge_param), borrow(rep.tangent), borrow(rep.r_a),
+        borrow(rep.r_b), borrow(rep.mu_static), borrow(rep.mu_dynamic), borrow(rep.restitution),
+        borrow(rep.normal_impulse), borrow(rep.tangent_impulse), borrow(rep.step_end),
+        borrow(rep.counts))
     while t_end - t > 1e-9 * h:
         step = min(h, t_end - t)
-        code, warm = _step(step, t, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints,
-                           floats, rep, msgs, n_msgs)
+        ar = scratch[n & 1]
+        release(ar, 0)
+        code, warm = _step(ar, step, t, pos, ang, vel, om, bodies, shapes, drives, st, warm,
+                           ints, floats, rep, msgs, n_msgs)
         if code != DONE:
-            return code, t, warm
+            break
         t = t + step
-    return DONE, t, warm
+        n += 1
+    return code, t, Warm(warm.keys.copy(), warm.p_n.copy(), warm.p_t.copy())

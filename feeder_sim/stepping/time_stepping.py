@@ -88,6 +88,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from feeder_sim._arena import grown_capacity, new_arena, SHORT
 from feeder_sim.contact import _island_kernels as K
 from feeder_sim.contact import lcp
 from feeder_sim.contact._collision_kernels import NarrowPhaseTolerances
@@ -116,6 +117,11 @@ from feeder_sim.contact.dynamics import (
 from feeder_sim.model.world import State, World
 from feeder_sim.stepping import _time_stepping_kernels as TK
 from feeder_sim.stepping.protocol import StepContacts, StepperBase
+
+# First size of each scratch arena of the compiled step (bytes): a single part's step needs
+# ~20 kB; a pile's step ~1 kB per vertex. A step that needs more grows them for the next call.
+_ARENA_BYTES = 64 * 1024
+_ARENA_BYTES_PER_VERTEX = 1024
 
 
 @dataclass
@@ -276,6 +282,10 @@ class TimeStepper(StepperBase):
         self._geo: _IslandGeometry | None = None
         self._compiled = self._compiled_world()
         self._reports = TK.new_reports(256)
+        # the compiled step's scratch (two: a step's warm-start impulses live in its arena
+        # while the next step runs in the other); grown when a step needed more
+        size = _ARENA_BYTES + _ARENA_BYTES_PER_VERTEX * len(self.world.shapes.vertices)
+        self._arenas = (new_arena(size), new_arena(size))
 
     def _compiled_world(self) -> tuple[TK.StepBodies, TK.StepShapes]:
         """The world's constants as the compiled step takes them."""
@@ -384,7 +394,9 @@ class TimeStepper(StepperBase):
         code, t, warm = TK.advance(
             state.t, t_end, state.position, state.angle, state.velocity, state.omega, bodies,
             shapes, self.world.drive_segments(state.t), settings, warm, ints, floats, rep, msgs,
-            n_msgs)
+            n_msgs, (self._arenas[0].state, self._arenas[1].state))
+        if any(arena.state[SHORT] for arena in self._arenas):
+            self._arenas = tuple(new_arena(grown_capacity(a)) for a in self._arenas)
         state.t = t
         self._warm.keys, self._warm.p_n, self._warm.p_t = warm
         for name, value in zip(TK.INT_COUNTERS, ints.tolist(), strict=True):

@@ -26,6 +26,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from feeder_sim._arena import heap_arena
 from feeder_sim._jit import jit
 from feeder_sim.model.world import DRIVEN, MOVING
 from feeder_sim.stepping.event_driven import _kernels as kern
@@ -354,7 +355,7 @@ def _impacts(c, pos, ang, vel, om, world, tols, stats, rec, rows):
     k = c.vertex.shape[0]
     point, normal, _, _ = _geometry(pos, ang, c)
     r_a, r_b = _arms(pos, c, point)
-    bodies = kern.sorted_unique(c.body_a)
+    bodies = kern.sorted_unique(heap_arena(), c.body_a)
     no_friction = np.zeros(k, np.int64)
     slave = np.zeros(k)
     for _ in range(20):
@@ -444,7 +445,7 @@ def _mode_at_event(t, c, pos, ang, vel, om, model, world, tols, acc, stats):
             stats[N_TRIVIAL] += 1
     else:
         ok, _, _, W = kern.contact_jacobian(normal, r_a, r_b, a, b, dynamic, inv_mass,
-                                            inv_inertia, kern.sorted_unique(a))
+                                            inv_inertia, kern.sorted_unique(heap_arena(), a))
         if not ok:
             return fail
         f, x, _, res, pivots, _, _ = kern.lcp_dantzig(W, b_full, fr, mu_s, mu_s,

@@ -28,6 +28,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from feeder_sim._arena import heap_arena
 from feeder_sim._jit import jit
 from feeder_sim.contact._collision_kernels import sorted_unique
 from feeder_sim.contact._lcp_kernels import BOX_ROW, reduce_lcp, SLAVED_ROW
@@ -646,7 +647,7 @@ def closed_form_mode(normal, r_a, r_b, body_a, body_b, dynamic, inv_mass, inv_in
     then the phase has no closed form. ``drive_of`` is each body's drive (-1: none)."""
     k = normal.shape[0]
     nd = drive_u.shape[0]
-    bodies = sorted_unique(body_a)
+    bodies = sorted_unique(heap_arena(), body_a)
     nb = bodies.shape[0]
     dv = np.zeros((nb, 3, 1 + nd))
     f = np.zeros((2 * k, 1 + nd))
