@@ -705,3 +705,25 @@ def test_grid_compound_body_seams():
 def test_depth_zero_reports_only_non_penetrating():
     assert resting_box_scene(lift=-1e-9).contacts(depth=0.0).n == 0
     assert resting_box_scene(lift=0.0).contacts(depth=0.0).n == 2
+
+
+def test_compiled_argsort_is_numpys_stable_argsort():
+    # The kernels' hand-written sort (insertion-sorted runs, then merges that copy runs
+    # already in order) gives numpy's stable permutation: ties keep their order.
+    import numba
+
+    from feeder_sim._arena import heap_arena
+    from feeder_sim.contact._collision_kernels import _argsort
+
+    @numba.njit
+    def argsort(keys):
+        return _argsort(heap_arena(), keys)
+
+    rng = np.random.default_rng(3)
+    for n in [0, 1, 2, 15, 16, 17, 31, 32, 33, 100, 257]:
+        ints = rng.integers(0, max(1, n // 4), n)
+        floats = rng.normal(size=n)
+        nearly = np.sort(floats)
+        nearly[rng.integers(0, max(1, n), min(n, 3))] += 0.1
+        for keys in (ints, floats, np.sort(floats), np.sort(floats)[::-1].copy(), nearly):
+            np.testing.assert_array_equal(argsort(keys), np.argsort(keys, kind='stable'))
