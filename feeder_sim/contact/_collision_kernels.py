@@ -13,7 +13,6 @@ import numpy as np
 from feeder_sim._arena import empty_f, empty_i, full_b, full_i, gather, heap_arena
 from feeder_sim._jit import inner, jit
 
-
 _RUN = 16      # _argsort's insertion-sorted runs
 
 
