@@ -96,13 +96,13 @@ def heap_arena():
     return np.zeros(5, np.int64)
 
 
-@inner
+@inner(machine_inline=True)
 def mark(ar) -> int:
     """The arena's level now, for :func:`release`."""
     return ar[USED]
 
 
-@inner
+@inner(machine_inline=True)
 def release(ar, level: int) -> None:
     """Give back everything handed out since ``mark`` returned ``level``."""
     if ar[USED] > ar[PEAK]:
@@ -110,7 +110,7 @@ def release(ar, level: int) -> None:
     ar[USED] = level
 
 
-@inner
+@inner(machine_inline=True)
 def _reserve(ar, nbytes):
     """Offset of ``nbytes`` fresh bytes, or -1 (counted) when the buffer cannot hold them."""
     start = (ar[USED] + (_ALIGN - 1)) & -_ALIGN
@@ -154,7 +154,7 @@ def _heap_like(like, n):
     return np.empty(n, like.dtype)
 
 
-@inner
+@inner(machine_inline=True)
 def empty_f(ar, n):
     """``np.empty(n)``."""
     at = _reserve(ar, 8 * n)
@@ -163,7 +163,7 @@ def empty_f(ar, n):
     return numba.carray(_address(ar[BASE] + at, numba.float64), (n,))
 
 
-@inner
+@inner(machine_inline=True)
 def empty_f2(ar, n, m):
     """``np.empty((n, m))``."""
     at = _reserve(ar, 8 * n * m)
@@ -172,7 +172,7 @@ def empty_f2(ar, n, m):
     return numba.carray(_address(ar[BASE] + at, numba.float64), (n, m))
 
 
-@inner
+@inner(machine_inline=True)
 def empty_i(ar, n):
     """``np.empty(n, np.int64)``."""
     at = _reserve(ar, 8 * n)
@@ -181,7 +181,7 @@ def empty_i(ar, n):
     return numba.carray(_address(ar[BASE] + at, numba.int64), (n,))
 
 
-@inner
+@inner(machine_inline=True)
 def empty_b(ar, n):
     """``np.empty(n, np.bool_)``."""
     at = _reserve(ar, n)
@@ -190,7 +190,7 @@ def empty_b(ar, n):
     return numba.carray(_address(ar[BASE] + at, numba.boolean), (n,))
 
 
-@inner
+@inner(machine_inline=True)
 def zeros_f(ar, n):
     """``np.zeros(n)``."""
     x = empty_f(ar, n)
@@ -199,7 +199,7 @@ def zeros_f(ar, n):
     return x
 
 
-@inner
+@inner(machine_inline=True)
 def zeros_f2(ar, n, m):
     """``np.zeros((n, m))``."""
     x = empty_f2(ar, n, m)
@@ -209,7 +209,7 @@ def zeros_f2(ar, n, m):
     return x
 
 
-@inner
+@inner(machine_inline=True)
 def full_i(ar, n, value):
     """``np.full(n, value, np.int64)``."""
     x = empty_i(ar, n)
@@ -218,7 +218,7 @@ def full_i(ar, n, value):
     return x
 
 
-@inner
+@inner(machine_inline=True)
 def arange_i(ar, n):
     """``np.arange(n)``."""
     x = empty_i(ar, n)
@@ -227,7 +227,7 @@ def arange_i(ar, n):
     return x
 
 
-@inner
+@inner(machine_inline=True)
 def full_b(ar, n, value):
     """``np.full(n, value, np.bool_)``."""
     x = empty_b(ar, n)
@@ -236,7 +236,7 @@ def full_b(ar, n, value):
     return x
 
 
-@inner
+@inner(machine_inline=True)
 def copy_f(ar, src):
     """``src.copy()`` of a 1-d float array."""
     x = empty_f(ar, src.shape[0])
@@ -245,7 +245,7 @@ def copy_f(ar, src):
     return x
 
 
-@inner
+@inner(machine_inline=True)
 def copy_f2(ar, src):
     """``src.copy()`` of a 2-d float array."""
     n, m = src.shape
@@ -256,7 +256,7 @@ def copy_f2(ar, src):
     return x
 
 
-@inner
+@inner(machine_inline=True)
 def copy_i(ar, src):
     """``src.copy()`` of a 1-d int array."""
     x = empty_i(ar, src.shape[0])
@@ -265,7 +265,7 @@ def copy_i(ar, src):
     return x
 
 
-@inner
+@inner(machine_inline=True)
 def full_i2(ar, n, m, value):
     """``np.full((n, m), value, np.int64)``."""
     at = _reserve(ar, 8 * n * m)
@@ -279,7 +279,7 @@ def full_i2(ar, n, m, value):
     return x
 
 
-@inner
+@inner(machine_inline=True)
 def empty_like(ar, like, n):
     """``np.empty(n, like.dtype)`` (``like`` a 1-d array)."""
     at = _reserve(ar, like.itemsize * n)
@@ -288,7 +288,7 @@ def empty_like(ar, like, n):
     return numba.carray(_address(ar[BASE] + at, like), (n,))
 
 
-@inner
+@inner(machine_inline=True)
 def gather(ar, src, idx):
     """``src[idx]`` of a 1-d array."""
     x = empty_like(ar, src, idx.shape[0])
@@ -297,7 +297,7 @@ def gather(ar, src, idx):
     return x
 
 
-@inner
+@inner(machine_inline=True)
 def gather_rows(ar, src, idx):
     """``src[idx]`` of an (n, 2) float array."""
     x = empty_f2(ar, idx.shape[0], 2)
@@ -307,7 +307,7 @@ def gather_rows(ar, src, idx):
     return x
 
 
-@inner
+@inner(machine_inline=True)
 def concat(ar, x, y):
     """``np.concatenate((x, y))`` of two 1-d arrays of one dtype."""
     n = x.shape[0]

@@ -44,11 +44,17 @@ def jit(fn: Callable) -> Callable:
     return numba.njit(**JIT_OPTIONS)(fn)
 
 
-def inner(fn: Callable | None = None, *, inline: str = 'never') -> Callable:
+def inner(fn: Callable | None = None, *, inline: str = 'never',
+          machine_inline: bool = False) -> Callable:
     """Compile ``fn`` for calls from other kernels only: no Python wrapper (less to compile).
 
-    ``@inner(inline='always')`` also inlines it into each caller (for a tiny hot helper)."""
-    compile_ = numba.njit(no_cpython_wrapper=True, inline=inline, **JIT_OPTIONS)
+    ``@inner(inline='always')`` inlines it into each caller's numba IR (typed again there:
+    costly to compile). ``@inner(machine_inline=True)`` has LLVM inline the compiled function
+    instead (numba's ``forceinline``), nearly free to compile: for tiny helpers called
+    everywhere, where numba's calling convention (status word, arguments by pointer, a
+    reference-count call per array) costs more than their body."""
+    compile_ = numba.njit(no_cpython_wrapper=True, inline=inline, forceinline=machine_inline,
+                          **JIT_OPTIONS)
     return compile_ if fn is None else compile_(fn)
 
 
