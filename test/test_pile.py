@@ -14,6 +14,7 @@ import math
 import numpy as np
 import pytest
 
+from feeder_sim._arena import heap_state
 from feeder_sim.contact import _island_kernels as K
 from feeder_sim.contact.collision import evaluate_gaps
 from feeder_sim.model.builders import build, conveyor
@@ -87,8 +88,8 @@ def test_compiled_projection_matches_lcp_solve():
         w = sim.world
         topo = w.shapes.derived
         idx = np.flatnonzero(mask)
-        gap = K.feature_gaps(idx, cs.contacts.vertex_a, cs.contacts.edge_b, w.shapes.vertices,
-                             w.shapes.normals, topo.vertex_body, state.position,
+        gap = K.feature_gaps(heap_state(), idx, cs.contacts.vertex_a, cs.contacts.edge_b,
+                             w.shapes.vertices, w.shapes.normals, topo.vertex_body, state.position,
                              np.cos(state.angle), np.sin(state.angle))
         ref_gap = evaluate_gaps(w.shapes, cs.contacts, state.position, state.angle)[0]
         assert same_bits(gap, ref_gap[idx])
@@ -233,10 +234,10 @@ def test_pgs_kernel_gives_the_bits_of_a_plain_transcription():
     for args in calls:
         ref_args = [x.copy() if isinstance(x, np.ndarray) else x for x in args]
         got = kernel(*args)
-        ref = pgs_reference(*ref_args)
+        ref = pgs_reference(*ref_args[1:])          # (the kernel's first: its scratch arena)
         for x, y in zip(got, ref, strict=True):
             assert same_bits(x, y)
-        for i in (15, 16, 17, 18):                  # x_n, x_t, w_t, dv
+        for i in (16, 17, 18, 19):                  # x_n, x_t, w_t, dv
             assert same_bits(args[i], ref_args[i])
         sweeps += int(got[2].sum())
     assert sweeps > 100

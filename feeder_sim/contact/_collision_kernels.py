@@ -10,7 +10,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from feeder_sim._arena import empty_f, empty_i, full_b, full_i, gather, heap_arena
+from feeder_sim._arena import empty_f, empty_i, full_b, full_i, gather
 from feeder_sim._jit import inner, jit
 
 _RUN = 16      # _argsort's insertion-sorted runs
@@ -167,16 +167,8 @@ class NarrowPhaseTolerances(NamedTuple):
 
 
 @jit
-def narrow_phase(w, nw, lo, hi, piece_start, piece_body, take, dyn, piece_width, coord, radius,
-                 active, internal, nxt, prv, elen, tol):
-    """:func:`narrow_phase_in` with ordinary (heap) arrays."""
-    return narrow_phase_in(heap_arena(), w, nw, lo, hi, piece_start, piece_body, take, dyn,
-                           piece_width, coord, radius, active, internal, nxt, prv, elen, tol)
-
-
-@inner
-def narrow_phase_in(ar, w, nw, lo, hi, piece_start, piece_body, take, dyn, piece_width, coord,
-                    radius, active, internal, nxt, prv, elen, tol):
+def narrow_phase(ar, w, nw, lo, hi, piece_start, piece_body, take, dyn, piece_width, coord,
+                 radius, active, internal, nxt, prv, elen, tol):
     """Vertex-edge contacts of all piece pairs whose AABBs are within ``tol.bp_margin_m``
     (``tol`` a :class:`NarrowPhaseTolerances`).
 
@@ -251,16 +243,8 @@ def narrow_phase_in(ar, w, nw, lo, hi, piece_start, piece_body, take, dyn, piece
 
 
 @jit
-def clean_contacts(vert, edge, gap, t, cover_start, cover_lo, cover_hi, nxt, canon, vbody,
-                   nw, n_vertices, n_bodies, param_tol, angle_tol):
-    """:func:`clean_contacts_in` with ordinary (heap) arrays."""
-    return clean_contacts_in(heap_arena(), vert, edge, gap, t, cover_start, cover_lo, cover_hi,
-                             nxt, canon, vbody, nw, n_vertices, n_bodies, param_tol, angle_tol)
-
-
-@inner
-def clean_contacts_in(ar, vert, edge, gap, t, cover_start, cover_lo, cover_hi, nxt, canon,
-                      vbody, nw, n_vertices, n_bodies, param_tol, angle_tol):
+def clean_contacts(ar, vert, edge, gap, t, cover_start, cover_lo, cover_hi, nxt, canon,
+                   vbody, nw, n_vertices, n_bodies, param_tol, angle_tol):
     """The clean-up of ``collision.find_contacts`` after the narrow phase: contacts on
     internal edge portions and one of each vertex-on-vertex pair dropped from the raw
     contacts, duplicates of one canonical vertex against parallel edges of one body merged

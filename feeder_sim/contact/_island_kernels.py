@@ -30,7 +30,6 @@ from feeder_sim._arena import (
     full_b,
     full_i,
     full_i2,
-    heap_arena,
     zeros_f,
     zeros_f2,
 )
@@ -47,13 +46,7 @@ def _find(parent: np.ndarray, i: int) -> int:
 
 
 @jit
-def island_groups(n_bodies, dynamic, a, b):
-    """:func:`island_groups_in` with ordinary (heap) arrays."""
-    return island_groups_in(heap_arena(), n_bodies, dynamic, a, b)
-
-
-@inner
-def island_groups_in(ar, n_bodies, dynamic, a, b):
+def island_groups(ar, n_bodies, dynamic, a, b):
     """Islands of dynamic bodies joined by contacts (static / kinematic bodies never join).
 
     Returns ``(order, starts, bodies, body_starts)``: island i owns the contacts
@@ -155,14 +148,7 @@ def _rows(ar, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia):
 
 
 @jit
-def apply_impulses(dv, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, p_n, p_t):
-    """:func:`apply_impulses_in` with ordinary (heap) arrays."""
-    return apply_impulses_in(heap_arena(), dv, a, b, normal, tangent, r_a, r_b, inv_mass,
-                             inv_inertia, p_n, p_t)
-
-
-@inner
-def apply_impulses_in(ar, dv, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, p_n, p_t):
+def apply_impulses(ar, dv, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, p_n, p_t):
     """``dv[body] += M^-1 J^T p`` for contact impulses (p_n, p_t); dv is (n_bodies, 3).
 
     Summed like ``IslandJacobian.velocity_change`` (``inv_mass * (J.T @ impulse)``): per body
@@ -344,17 +330,8 @@ class RowSettings(NamedTuple):
 
 
 @jit
-def contact_rows(a, b, point, normal, gap, order, starts, position, v_end, w_end, v_pre, w_pre,
-                 mu_s_body, mu_d_body, e_body, piece_a, piece_b, piece_width, settings):
-    """:func:`contact_rows_in` with ordinary (heap) arrays."""
-    return contact_rows_in(heap_arena(), a, b, point, normal, gap, order, starts, position, v_end,
-                           w_end, v_pre, w_pre, mu_s_body, mu_d_body, e_body, piece_a, piece_b,
-                           piece_width, settings)
-
-
-@inner
-def contact_rows_in(ar, a, b, point, normal, gap, order, starts, position, v_end, w_end, v_pre,
-                    w_pre, mu_s_body, mu_d_body, e_body, piece_a, piece_b, piece_width, settings):
+def contact_rows(ar, a, b, point, normal, gap, order, starts, position, v_end, w_end, v_pre,
+                 w_pre, mu_s_body, mu_d_body, e_body, piece_a, piece_b, piece_width, settings):
     """The per-contact part of ``TimeStepper._contacts`` in one pass (the numpy expressions it
     replaces are quoted; same operations in the same order, so the same bits).
 
@@ -482,14 +459,7 @@ def contact_rows_in(ar, a, b, point, normal, gap, order, starts, position, v_end
 
 
 @jit
-def feature_gaps(idx, vertex, edge, vertices, normals, vertex_body, position, cos, sin):
-    """:func:`feature_gaps_in` with ordinary (heap) arrays."""
-    return feature_gaps_in(heap_arena(), idx, vertex, edge, vertices, normals, vertex_body,
-                           position, cos, sin)
-
-
-@inner
-def feature_gaps_in(ar, idx, vertex, edge, vertices, normals, vertex_body, position, cos, sin):
+def feature_gaps(ar, idx, vertex, edge, vertices, normals, vertex_body, position, cos, sin):
     """Gaps of the vertex-edge features of contacts ``idx`` at another configuration:
     ``collision.evaluate_gaps`` (its gap) with the same arithmetic, so the same bits; ``cos`` /
     ``sin`` of the body angles are numpy's. Used by the position projection, which needs the
@@ -681,16 +651,8 @@ def _island_dense(ar, lo_c, hi_c, c, a, b, ja, jb, ma, mb, b_n, b_t, box, mu_lo,
 
 
 @jit
-def solve_small(select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, b_n,
+def solve_small(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, b_n,
                 b_t, box, mu_lo, mu_hi, x_n, x_t, w_t):
-    """:func:`solve_small_in` with ordinary (heap) arrays."""
-    return solve_small_in(heap_arena(), select, starts, a, b, normal, tangent, r_a, r_b, inv_mass,
-                          inv_inertia, b_n, b_t, box, mu_lo, mu_hi, x_n, x_t, w_t)
-
-
-@inner
-def solve_small_in(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, b_n,
-                   b_t, box, mu_lo, mu_hi, x_n, x_t, w_t):
     """The islands with ``select`` (contacts grouped by ``starts``, CSR) by Baraff-Dantzig
     (``dantzig``), from scratch.
 
@@ -729,17 +691,8 @@ def solve_small_in(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass
 
 
 @jit
-def solve_pgs(select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, b_n, b_t,
-              box, mu_lo, mu_hi, x_n, x_t, w_t, dv, tol, max_sweeps, check, omega):
-    """:func:`solve_pgs_in` with ordinary (heap) arrays."""
-    return solve_pgs_in(heap_arena(), select, starts, a, b, normal, tangent, r_a, r_b, inv_mass,
-                        inv_inertia, b_n, b_t, box, mu_lo, mu_hi, x_n, x_t, w_t, dv, tol,
-                        max_sweeps, check, omega)
-
-
-@inner
-def solve_pgs_in(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, b_n,
-                 b_t, box, mu_lo, mu_hi, x_n, x_t, w_t, dv, tol, max_sweeps, check, omega):
+def solve_pgs(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, b_n,
+              b_t, box, mu_lo, mu_hi, x_n, x_t, w_t, dv, tol, max_sweeps, check, omega):
     """The islands with ``select`` by projected Gauss-Seidel in velocity form
     (``_pgs_island``).
 

@@ -84,6 +84,7 @@ import math
 
 import numpy as np
 
+from feeder_sim._arena import heap_state
 from feeder_sim.contact._collision_kernels import (
     clean_contacts,
     narrow_phase,
@@ -309,13 +310,13 @@ def find_contacts(shapes: ShapeSet, position: np.ndarray, angle: np.ndarray,
         depth_fraction=DEPTH_FRACTION, tie_rel=TIE_REL, param_tol=float(param_tol),
         angle_tol=float(angle_tol))
     vert, edge, gap, t, _ = narrow_phase(
-        w, nw, lo, hi, shapes.piece_start, body, take, dyn, topo.piece_width, coord,
-        shapes.radius, topo.vertex_active, topo.edge_internal, topo.next_vertex,
+        heap_state(), w, nw, lo, hi, shapes.piece_start, body, take, dyn, topo.piece_width,
+        coord, shapes.radius, topo.vertex_active, topo.edge_internal, topo.next_vertex,
         topo.prev_vertex, topo.edge_length, tol)
     if len(vert) == 0:
         return Contacts.empty()
-    o = clean_contacts(vert, edge, gap, t, topo.cover_start, topo.cover_lo, topo.cover_hi,
-                       topo.next_vertex, topo.vertex_canon, topo.vertex_body, nw,
+    o = clean_contacts(heap_state(), vert, edge, gap, t, topo.cover_start, topo.cover_lo,
+                       topo.cover_hi, topo.next_vertex, topo.vertex_canon, topo.vertex_body, nw,
                        len(shapes.vertices), int(body.max()) + 1, float(param_tol),
                        float(angle_tol))
     vert, edge = vert[o], edge[o]

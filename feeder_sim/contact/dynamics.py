@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from feeder_sim._arena import heap_state
 from feeder_sim.contact._island_kernels import island_groups
 from feeder_sim.contact.collision import CONTACT_FIELDS, Contacts
 from feeder_sim.contact.lcp import FrictionalLCP
@@ -128,7 +129,7 @@ def islands(world: World, cs: ContactSet) -> list[tuple[np.ndarray, np.ndarray]]
     """
     if cs.n == 0:
         return []
-    order, starts, bodies, body_starts = island_groups(world.n, world.dynamic,
+    order, starts, bodies, body_starts = island_groups(heap_state(), world.n, world.dynamic,
                                                        cs.contacts.body_a, cs.contacts.body_b)
     return [(bodies[body_starts[i]:body_starts[i + 1]], order[starts[i]:starts[i + 1]])
             for i in range(len(starts) - 1)]

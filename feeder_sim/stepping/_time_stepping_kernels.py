@@ -43,19 +43,19 @@ from feeder_sim._jit import inner, jit
 from feeder_sim.contact._collision_kernels import (
     _argsort,
     _where,
-    clean_contacts_in,
-    narrow_phase_in,
+    clean_contacts,
+    narrow_phase,
     NarrowPhaseTolerances,
 )
 from feeder_sim.contact._island_kernels import (
-    apply_impulses_in,
-    contact_rows_in,
+    apply_impulses,
+    contact_rows,
     drift,
-    feature_gaps_in,
-    island_groups_in,
+    feature_gaps,
+    island_groups,
     RowSettings,
-    solve_pgs_in,
-    solve_small_in,
+    solve_pgs,
+    solve_small,
     speed_bounds,
 )
 from feeder_sim.model.vibration import DriveSegments, segment_motion
@@ -291,7 +291,7 @@ def _find_contacts(ar, shapes, position, angle, dynamic, margin, narrow):
     coord = empty_f(ar, n)
     for i in range(n):
         coord[i] = max(abs(position[i, 0]), abs(position[i, 1]))
-    vert, edge, gap, t, _ = narrow_phase_in(
+    vert, edge, gap, t, _ = narrow_phase(
         ar, w, nw, lo, hi, shapes.piece_start, shapes.piece_body, take, dyn, shapes.piece_width,
         coord, shapes.piece_radius, shapes.vertex_active, shapes.edge_internal,
         shapes.next_vertex, shapes.prev_vertex, shapes.edge_length,
@@ -300,10 +300,10 @@ def _find_contacts(ar, shapes, position, angle, dynamic, margin, narrow):
                               narrow.angle_tol))
     if vert.shape[0] == 0:
         return none_i, none_i, none_f, none_f, w, nw, True
-    o = clean_contacts_in(ar, vert, edge, gap, t, shapes.cover_start, shapes.cover_lo,
-                          shapes.cover_hi, shapes.next_vertex, shapes.vertex_canon,
-                          shapes.vertex_body, nw, nv, shapes.n_piece_bodies, narrow.param_tol,
-                          narrow.angle_tol)
+    o = clean_contacts(ar, vert, edge, gap, t, shapes.cover_start, shapes.cover_lo,
+                       shapes.cover_hi, shapes.next_vertex, shapes.vertex_canon,
+                       shapes.vertex_body, nw, nv, shapes.n_piece_bodies, narrow.param_tol,
+                       narrow.angle_tol)
     return (gather(ar, vert, o), gather(ar, edge, o), gather(ar, gap, o), gather(ar, t, o), w, nw,
             True)
 
@@ -412,7 +412,7 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
     ones = full_b(ar, n_isl, True)
     for again in (True, False):
         if small.any():
-            res, work, codes = solve_small_in(ar, small, starts, a, b, normal, tangent, r_a, r_b,
+            res, work, codes = solve_small(ar, small, starts, a, b, normal, tangent, r_a, r_b,
                                            bodies.inv_mass, bodies.inv_inertia, b_n, b_t, box,
                                            lo, hi, x_n, x_t, v_t_new)
             for i in range(n_isl):
@@ -420,7 +420,7 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
                     return x_n, x_t, False
             _record_batch(ints, floats, small, rows, work, res, ones)
         if large.any():
-            res, vres, work = solve_pgs_in(ar, large, starts, a, b, normal, tangent, r_a, r_b,
+            res, vres, work = solve_pgs(ar, large, starts, a, b, normal, tangent, r_a, r_b,
                                         bodies.inv_mass, bodies.inv_inertia, b_n, b_t, box, lo,
                                         hi, x_n, x_t, v_t_new, zeros_f2(ar, n_bodies, 3),
                                         st.pgs_tol_mps, st.pgs_max_sweeps, st.pgs_check,
@@ -549,14 +549,14 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, 
         piece_b = gather(ar, shapes.vertex_piece, edge)
         point = gather_rows(ar, w, vert)
         normal = gather_rows(ar, nw, edge)
-        order, starts, isl_bodies, body_starts = island_groups_in(ar, n, dynamic, body_a,
-                                                                  body_b)
+        order, starts, isl_bodies, body_starts = island_groups(ar, n, dynamic, body_a,
+                                                               body_b)
         slip_tol = _larger(st.slip_tol_mps, h * spin)
         settings = RowSettings(h, st.touch_m, st.direct_max_rows, st.push_out, st.push_max_mps,
                                st.slop_m, -2.0 * g * h, slip_tol, st.friction_impulse,
                                st.spec_depth, margin)
         (keep, tangent, r_a, r_b, mu_s, mu_d, rest, v_n_free, v_t_free, v_t_pre, pile,
-         colliding, b_n, box, mu_lo, mu_hi, gap_min) = contact_rows_in(
+         colliding, b_n, box, mu_lo, mu_hi, gap_min) = contact_rows(
             ar, body_a, body_b, point, normal, gap, order, starts, mid_pos, end_vel, end_om, vel,
             om, bodies.mu_static, bodies.mu_dynamic, bodies.restitution, piece_a, piece_b,
             shapes.piece_width, settings)
@@ -583,8 +583,8 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, 
             piece_a, piece_b = gather(ar, piece_a, keep), gather(ar, piece_b, keep)
             point, normal = gather_rows(ar, point, keep), gather_rows(ar, normal, keep)
             gap, param = gather(ar, gap, keep), gather(ar, param, keep)
-            order, starts, isl_bodies, body_starts = island_groups_in(ar, n, dynamic, body_a,
-                                                                      body_b)
+            order, starts, isl_bodies, body_starts = island_groups(ar, n, dynamic, body_a,
+                                                                   body_b)
             n_spare = k - m
         step_floats[F_MAX_PENETRATION] = _larger(step_floats[F_MAX_PENETRATION], -gap_min)
         projected = empty_b(ar, m)
@@ -647,8 +647,8 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, 
                 p_n[order[q]] = x_n[q]
                 p_t[order[q]] = x_t[q]
             dv = zeros_f2(ar, n, 3)
-            apply_impulses_in(ar, dv, body_a, body_b, normal, tangent, r_a, r_b,
-                              bodies.inv_mass, bodies.inv_inertia, p_n, p_t)
+            apply_impulses(ar, dv, body_a, body_b, normal, tangent, r_a, r_b,
+                           bodies.inv_mass, bodies.inv_inertia, p_n, p_t)
             for i in range(n):
                 if dynamic[i]:
                     end_vel[i, 0] = end_vel[i, 0] + dv[i, 0]
@@ -683,8 +683,8 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, 
             sin[i] = math.sin(new_ang[i])
         idx = _where(ar, projected)
         gap_end = zeros_f(ar, m)
-        got = feature_gaps_in(ar, idx, vert, edge, shapes.vertices, shapes.normals,
-                              shapes.vertex_body, new_pos, cos, sin)
+        got = feature_gaps(ar, idx, vert, edge, shapes.vertices, shapes.normals,
+                           shapes.vertex_body, new_pos, cos, sin)
         deep_any = False
         for q in range(idx.shape[0]):
             gap_end[idx[q]] = got[q]
@@ -721,11 +721,11 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, 
                     mask[q] = projected[q]
                 idx = _where(ar, mask)
                 gap_end = zeros_f(ar, kk)
-                got = feature_gaps_in(ar, idx, c_vert, c_edge, shapes.vertices, shapes.normals,
+                got = feature_gaps(ar, idx, c_vert, c_edge, shapes.vertices, shapes.normals,
                                    shapes.vertex_body, new_pos, cos, sin)
                 for q in range(idx.shape[0]):
                     gap_end[idx[q]] = got[q]
-                order, starts, isl_bodies, body_starts = island_groups_in(ar, n, dynamic, c_a, c_b)
+                order, starts, isl_bodies, body_starts = island_groups(ar, n, dynamic, c_a, c_b)
                 a_o, b_o = gather(ar, c_a, order), gather(ar, c_b, order)
                 normal_o = gather_rows(ar, c_normal, order)
                 tangent_o = gather_rows(ar, c_tangent, order)
@@ -746,17 +746,17 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, 
                     sel[i] = sel[i] or deep_o[q]
             zeros = zeros_f(ar, kk)
             x_n = zeros_f(ar, kk)
-            res, work, codes = solve_small_in(ar, sel, starts, a_o, b_o, normal_o, tangent_o,
-                                              r_a_o, r_b_o, bodies.inv_mass, bodies.inv_inertia,
-                                              rhs, zeros, full_b(ar, kk, False), zeros, zeros,
-                                              x_n, zeros_f(ar, kk), zeros_f(ar, kk))
+            res, work, codes = solve_small(ar, sel, starts, a_o, b_o, normal_o, tangent_o,
+                                           r_a_o, r_b_o, bodies.inv_mass, bodies.inv_inertia,
+                                           rhs, zeros, full_b(ar, kk, False), zeros, zeros,
+                                           x_n, zeros_f(ar, kk), zeros_f(ar, kk))
             for i in range(n_isl):
                 if sel[i] and res[i] > st.lcp_tol:
                     return REFERENCE, warm
             _record_batch(step_ints, step_floats, sel, lens, work, res, sel)
             dv = zeros_f2(ar, n, 3)
-            apply_impulses_in(ar, dv, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o,
-                              bodies.inv_mass, bodies.inv_inertia, x_n, zeros)
+            apply_impulses(ar, dv, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o,
+                           bodies.inv_mass, bodies.inv_inertia, x_n, zeros)
             sunk = empty_f(ar, kk)
             for q in range(kk):
                 x = -gap_o[q]

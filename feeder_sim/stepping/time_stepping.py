@@ -88,7 +88,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from feeder_sim._arena import grown_capacity, new_arena, SHORT
+from feeder_sim._arena import grown_capacity, heap_state, new_arena, SHORT
 from feeder_sim.contact import _island_kernels as K
 from feeder_sim.contact import lcp
 from feeder_sim.contact._collision_kernels import NarrowPhaseTolerances
@@ -246,7 +246,7 @@ class _IslandGeometry:
         c = cs.contacts
         self.cs = cs
         if groups is None:
-            groups = island_groups(world.n, world.dynamic, c.body_a, c.body_b)
+            groups = island_groups(heap_state(), world.n, world.dynamic, c.body_a, c.body_b)
         self.order, self.starts, self.bodies, self.body_starts = groups
         o = self.order
         self.kernel_args = (self.starts, c.body_a.take(o), c.body_b.take(o),
@@ -502,7 +502,7 @@ class TimeStepper(StepperBase):
             idx = np.flatnonzero(mask)
             c = cs.contacts
             gap = np.zeros(c.n)
-            gap[idx] = K.feature_gaps(idx, c.vertex_a, c.edge_b, w.shapes.vertices,
+            gap[idx] = K.feature_gaps(heap_state(), idx, c.vertex_a, c.edge_b, w.shapes.vertices,
                                       w.shapes.normals, topo.vertex_body, state.position,
                                       cos, sin)
             return gap
@@ -522,8 +522,8 @@ class TimeStepper(StepperBase):
         zeros = np.zeros(k)
         x_n = np.zeros(k)
         res, work, codes = K.solve_small(
-            sel, *geo.kernel_args, gap[order] + st.projection_slop_m, zeros, np.zeros(k, bool),
-            zeros, zeros, x_n, np.zeros(k), np.zeros(k))
+            heap_state(), sel, *geo.kernel_args, gap[order] + st.projection_slop_m, zeros,
+            np.zeros(k, bool), zeros, zeros, x_n, np.zeros(k), np.zeros(k))
         bad = sel & (res > st.lcp_tol)
         ok = sel & ~bad
         self.stats.record_batch((starts[1:] - starts[:-1])[ok], work[ok], res[ok],
@@ -536,7 +536,7 @@ class TimeStepper(StepperBase):
                 idx = order[lo_c:hi_c]
                 x_n[lo_c:hi_c] = self._project_island(cs, idx, geo.island_bodies(i), gap[idx])
         dv = np.zeros((w.n, 3))
-        K.apply_impulses(dv, *geo.kernel_args[1:], x_n, zeros)
+        K.apply_impulses(heap_state(), dv, *geo.kernel_args[1:], x_n, zeros)
         depth = np.add.reduceat(np.maximum(-gap[order], 0.0) * deep[order], starts[:-1])
         b = geo.bodies
         dv[b] = cap_moves(dv[b], self._radius[b],
@@ -629,7 +629,7 @@ class TimeStepper(StepperBase):
         # projection, so no velocity is spent on it. Piles (islands above direct_max_rows,
         # solved by PGS) keep speculative rows and a velocity push-out, which PGS handles
         # robustly at their size. (``_contact_rows_reference`` spells this out in numpy.)
-        groups = island_groups(w.n, self._dyn, contacts.body_a, contacts.body_b)
+        groups = island_groups(heap_state(), w.n, self._dyn, contacts.body_a, contacts.body_b)
         slip_tol = self._slip_tol(state, h)
         rows = self._contact_rows(contacts, groups, state, mid, end, h, slip_tol, reach_m)
         keep = rows[0]
@@ -684,8 +684,8 @@ class TimeStepper(StepperBase):
                     st, stats, slip_tol)
                 p_n[idx], p_t[idx] = impulse[:len(idx)], impulse[len(idx):]
             dv = np.zeros((w.n, 3))
-            K.apply_impulses(dv, a, b, c.normal, cs.tangent, cs.r_a, cs.r_b, w.inv_mass,
-                             w.inv_inertia, p_n, p_t)
+            K.apply_impulses(heap_state(), dv, a, b, c.normal, cs.tangent, cs.r_a, cs.r_b,
+                             w.inv_mass, w.inv_inertia, p_n, p_t)
             # end.velocity[dyn] += dv[dyn, :2]; end.omega[dyn] += dv[dyn, 2]
             np.add(end.velocity, dv[:, :2], out=end.velocity, where=self._dyn_col)
             np.add(end.omega, dv[:, 2], out=end.omega, where=self._dyn)
@@ -756,9 +756,10 @@ class TimeStepper(StepperBase):
             friction_impulse=bool(self.spec.friction_impulse),
             spec_depth=st.speculative_depth * DEPTH_FRACTION, reach_m=reach_m)
         return K.contact_rows(
-            c.body_a, c.body_b, c.point, c.normal, c.gap, groups[0], groups[1], mid.position,
-            end.velocity, end.omega, state.velocity, state.omega, w.mu_static, w.mu_dynamic,
-            w.restitution, c.piece_a, c.piece_b, w.shapes.derived.piece_width, settings)
+            heap_state(), c.body_a, c.body_b, c.point, c.normal, c.gap, groups[0], groups[1],
+            mid.position, end.velocity, end.omega, state.velocity, state.omega, w.mu_static,
+            w.mu_dynamic, w.restitution, c.piece_a, c.piece_b, w.shapes.derived.piece_width,
+            settings)
 
     def _contact_rows_reference(self, contacts, groups: tuple, state: State, mid: State,
                                 end: State, h: float, slip_tol: float, reach_m: float) -> tuple:
@@ -831,7 +832,8 @@ class TimeStepper(StepperBase):
         failed = np.zeros(len(lens), bool)
         for again in (True, False):
             if small.any():
-                res, work, codes = K.solve_small(small, *data, lo, hi, x_n, x_t, v_t_new)
+                res, work, codes = K.solve_small(heap_state(), small, *data, lo, hi, x_n, x_t,
+                                                 v_t_new)
                 bad = small & (res > st.lcp_tol)
                 ok = small & ~bad
                 stats.record_batch(rows[ok], work[ok], res[ok], np.ones(ok.sum(), bool),
@@ -842,8 +844,8 @@ class TimeStepper(StepperBase):
                     if len(stats.messages) < 20:
                         stats.messages.append(lcp.dantzig_message(res[i], codes[i]))
             if large.any():
-                res, vres, work = K.solve_pgs(large, *data, lo, hi, x_n, x_t, v_t_new,
-                                              np.zeros((w.n, 3)), st.pgs_tol_mps,
+                res, vres, work = K.solve_pgs(heap_state(), large, *data, lo, hi, x_n, x_t,
+                                              v_t_new, np.zeros((w.n, 3)), st.pgs_tol_mps,
                                               st.pgs_max_sweeps, st.pgs_check, st.pgs_omega)
                 conv = vres[large] <= st.pgs_tol_mps
                 stats.record_batch(rows[large], work[large], res[large], conv, 'pgs')
