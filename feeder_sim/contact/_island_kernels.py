@@ -525,17 +525,6 @@ def _pgs_records(ar, a, b, ja, jb, ma, mb, step, diag, b_n, b_t, mu_lo, mu_hi, i
 
 
 @inner(inline='always')
-def _pull(dv, R, k, ia, ib, col, w, fixed_a, fixed_b):
-    """Row ``k``'s velocity ``w + J dv`` summed left to right (``R[k, col:col + 6]`` hold J
-    for body a, then body b), leaving out the terms of a fixed body."""
-    if not fixed_a:
-        w = w + R[k, col] * dv[ia, 0] + R[k, col + 1] * dv[ia, 1] + R[k, col + 2] * dv[ia, 2]
-    if not fixed_b:
-        w = w + R[k, col + 3] * dv[ib, 0] + R[k, col + 4] * dv[ib, 1] + R[k, col + 5] * dv[ib, 2]
-    return w
-
-
-@inner(inline='always')
 def _push(dv, R, k, ia, ib, col, d):
     """Add the velocity change of an impulse change ``d`` on row ``k`` to both its bodies
     (``R[k, col:col + 6]`` hold M^-1 J^T for body a, then body b)."""
@@ -568,7 +557,14 @@ def _pgs_island(lo_c, hi_c, a, b, R, fixed_a, fixed_b, dv, box, x_n, x_t, sweeps
         change = 0.0
         for k in range(lo_c, hi_c):
             ia, ib = a[k], b[k]
-            w = _pull(dv, R, k, ia, ib, 0, R[k, _R_BN], fixed_a[k], fixed_b[k])
+            # w = b + J dv, written out: an inlined helper would count references of dv and
+            # R at every call (two calls per array per contact and sweep)
+            fa, fb = fixed_a[k], fixed_b[k]
+            w = R[k, _R_BN]
+            if not fa:
+                w = w + R[k, 0] * dv[ia, 0] + R[k, 1] * dv[ia, 1] + R[k, 2] * dv[ia, 2]
+            if not fb:
+                w = w + R[k, 3] * dv[ib, 0] + R[k, 4] * dv[ib, 1] + R[k, 5] * dv[ib, 2]
             xo = x_n[k]
             xn = xo - R[k, _R_SN] * w
             if xn < 0.0:
@@ -587,7 +583,11 @@ def _pgs_island(lo_c, hi_c, a, b, R, fixed_a, fixed_b, dv, box, x_n, x_t, sweeps
                     _push(dv, R, k, ia, ib, 18, d)
                     x_t[k] = 0.0
             elif box[k]:
-                w = _pull(dv, R, k, ia, ib, 12, R[k, _R_BT], fixed_a[k], fixed_b[k])
+                w = R[k, _R_BT]
+                if not fa:
+                    w = w + R[k, 12] * dv[ia, 0] + R[k, 13] * dv[ia, 1] + R[k, 14] * dv[ia, 2]
+                if not fb:
+                    w = w + R[k, 15] * dv[ib, 0] + R[k, 16] * dv[ib, 1] + R[k, 17] * dv[ib, 2]
                 xo = x_t[k]
                 xt = xo - R[k, _R_ST] * w
                 xt = min(max(xt, -R[k, _R_LO] * xn), R[k, _R_HI] * xn)
