@@ -463,3 +463,28 @@ def test_compiled_whole_step_gives_the_bits_of_the_reference_step(materials, fri
     assert ref_stats['lcp_solves'] > 500 and ref_stats['steps'] == 300
     if direct_max_rows == 0:
         assert ref_stats['pgs_solves'] > 100
+
+
+@pytest.mark.parametrize('n_parts', [1, 12, 60])
+def test_the_compiled_step_allocates_nothing_per_step(n_parts):
+    # Every scratch array of a compiled step comes from the stepper's arenas, so numba's
+    # allocation count over one advance call is the same for 10 steps as for 100: what a call
+    # costs (its arguments' wrappers, the warm impulses handed back), never a step. 60 parts
+    # make a pile (PGS); 12 small islands (Dantzig); 1 part a single contact pair.
+    from numba.core.runtime import _nrt_python, rtsys
+
+    sim = pile(n_parts, compiled=True)
+    sim.advance(0.3)                         # landed, and the arenas grown to what it takes
+    stepper, h = sim._stepper, sim._stepper.spec.time_step
+    counts = []
+    _nrt_python.memsys_enable_stats()
+    try:
+        for steps in (10, 100):
+            before = rtsys.get_allocation_stats().alloc
+            code = stepper._advance_compiled(sim.state, sim.state.t + steps * h, [])
+            assert code == TS.TK.DONE
+            counts.append(rtsys.get_allocation_stats().alloc - before)
+    finally:
+        _nrt_python.memsys_disable_stats()
+    assert stepper.stats.pgs_solves > 0 if n_parts == 60 else stepper.stats.lcp_solves > 0
+    assert counts[0] == counts[1] < 100

@@ -2,6 +2,7 @@
 
 The tests are those the module docstring of ``collision`` states. Library sorts,
 ``searchsorted`` and sets are avoided: each pulls seconds of generic code into the compile.
+The kernels take a scratch arena first (``ar``, :mod:`feeder_sim._arena`).
 """
 
 from __future__ import annotations

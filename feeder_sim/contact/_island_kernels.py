@@ -9,8 +9,11 @@ projection's normal-row problems, rather than a kernel of its own that would com
 reproduces the numpy code in :mod:`.dynamics` / ``time_stepping`` it replaces with the same
 arithmetic where that code is the reference (``test/test_pile.py`` holds them together).
 
+Each kernel takes a scratch arena first (``ar``, :mod:`feeder_sim._arena`): the compiled step
+passes its own, calls from Python ``heap_state()``, whose arrays are ordinary numpy ones.
+
 Compile time: about 28 s cold on a 2-core machine for what a single-box time-stepping run
-needs, later runs load machine code from ``__pycache__`` in ~0.5 s. The code avoids numba's
+needs, later runs load machine code from the cache in ~0.5 s. The code avoids numba's
 library sorts, ``lstsq``, ``@`` and slice assignment, and is kept flat, for compile time.
 """
 

@@ -6,7 +6,9 @@ states (the event-driven method re-solves its modes that way).
 
 The port keeps the reference's sets, events and tolerances; it is flat on purpose (three
 functions): numba generates every callee again inside each caller, so deep call trees multiply
-the compile time (``dantzig`` is about 17 s of a cold compile on a 2-core machine).
+the compile time (``dantzig`` is about 17 s of a cold compile on a 2-core machine). Its
+scratch comes from an arena (``ar``, :mod:`feeder_sim._arena`); each pivot's is given back
+before the next.
 """
 
 from __future__ import annotations

@@ -72,6 +72,11 @@ speeds of speculative rows are kept in Python), a Dantzig answer missing ``lcp_t
 reference solves it again through ``lcp.solve``'s ladder and counts the fallback), non-finite
 bounds (its error). ``TimeStepSettings(compiled=False)`` runs the reference alone.
 
+The kernel's steps make no numpy allocation: their scratch arrays come from two arenas
+(``feeder_sim._arena``) sized from the scene's vertex count and doubled when a step needed
+more (that step is served from the heap meanwhile, with the same bits), and the arrays it is
+given are borrowed, so no reference is counted along the way.
+
 Within ``step``, the per-contact set-up (index set, Newton / push-out rows, Kawachi's bounds)
 is ``_island_kernels.contact_rows``, with the bits of the numpy code it replaced
 (``_contact_rows_reference``); the position projection of the small islands solves their
