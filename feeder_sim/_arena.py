@@ -96,6 +96,17 @@ def heap_arena():
     return np.zeros(5, np.int64)
 
 
+@inner
+def local_arena(buf):
+    """An arena state over ``buf`` (uint8), for a kernel that makes its scratch in one
+    allocation: ``buf`` must stay in use until the last array carved from it is (numba frees
+    an array after its last use), and results must be copied out before it goes."""
+    state = np.zeros(5, np.int64)
+    state[BASE] = buf.ctypes.data
+    state[CAPACITY] = buf.shape[0]
+    return state
+
+
 @inner(machine_inline=True)
 def mark(ar) -> int:
     """The arena's level now, for :func:`release`."""

@@ -24,7 +24,7 @@ from feeder_sim._arena import (
     empty_i,
     full_b,
     full_i,
-    heap_arena,
+    local_arena,
     mark,
     release,
     zeros_f,
@@ -763,6 +763,12 @@ def lcp_dantzig(W, b_full, friction, mu_lo, mu_hi, slave):
     A, P, rows, normal_of, lo, hi = reduce_lcp(W, friction, mu_lo, mu_hi, slave)
     b = b_full[rows]
     m = b.shape[0]
-    x, pivots, code, retry = dantzig(heap_arena(), A, b, normal_of, lo, hi, 50 * m + 50)
+    # the pivots' scratch in one allocation (a direction's dense system and its LU, the
+    # bookkeeping; each direction's is given back before the next) instead of some fifty
+    buf = np.empty(8 * (4 * m * m + 48 * m) + 8192, np.uint8)
+    x, pivots, code, retry = dantzig(local_arena(buf), A, b, normal_of, lo, hi, 50 * m + 50)
+    x = x.copy()
+    if buf.shape[0] == 0:    # (buf in use until x is out of it)
+        x = x.copy()
     res = lcp_residual(A, b, x, normal_of, lo, hi)
     return P @ x, x, A @ x + b, res, pivots, (code, retry), (A, P, b, normal_of, lo, hi)
