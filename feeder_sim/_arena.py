@@ -9,16 +9,17 @@ skips counting for arrays without an owner), and the whole step's scratch is rel
 once by resetting the offset.
 
 Kernels see an arena as its ``state`` alone, an int64 array (:data:`BASE` address of the
-buffer, :data:`CAPACITY`, :data:`USED`, :data:`SHORT`, :data:`PEAK`, in bytes): one small
-argument keeps the allocators small enough for LLVM to inline them where they are called (a
-call of a numba function costs some 20 ns of argument and reference handling).
+buffer, :data:`CAPACITY`, :data:`USED`, :data:`SHORT`, :data:`PEAK`, in bytes), and the
+allocators are inlined where they are called (a call of a numba function costs some 20 ns of
+argument and reference handling, more than a bump of an offset).
 
 Rules that keep that safe:
 
 * An arena array is valid until its arena is released below it (:func:`release` to an
   earlier :func:`mark`, or the next step's reset). Nothing that outlives that may point into
-  it: results a kernel returns to Python are copied out, or come from a :func:`heap_arena`,
-  whose capacity is 0 so every array it gives is an ordinary numpy one.
+  it: results a kernel returns to Python are copied out, or come from an arena of capacity
+  0 (:func:`heap_state` from Python, :func:`heap_arena` in a kernel), whose arrays are all
+  ordinary numpy ones.
 * A request the buffer cannot hold is served from the heap and counted (``SHORT`` bytes): the
   step stays correct and the owner grows the buffer before the next call
   (:func:`grown_capacity`).

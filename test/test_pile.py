@@ -488,3 +488,17 @@ def test_the_compiled_step_allocates_nothing_per_step(n_parts):
         _nrt_python.memsys_disable_stats()
     assert stepper.stats.pgs_solves > 0 if n_parts == 60 else stepper.stats.lcp_solves > 0
     assert counts[0] == counts[1] < 100
+
+
+def test_arenas_too_small_give_the_same_steps_and_grow():
+    # A step whose scratch does not fit its arena takes the rest from the heap: the same bits
+    # as a step with room, and the stepper doubles its arenas for the next call.
+    from feeder_sim._arena import new_arena
+
+    roomy, cramped = pile(12, compiled=True), pile(12, compiled=True)
+    cramped._stepper._arenas = (new_arena(64), new_arena(64))
+    roomy.advance(0.3)
+    cramped.advance(0.3)
+    assert roomy.state.position.tobytes() == cramped.state.position.tobytes()
+    assert roomy.state.velocity.tobytes() == cramped.state.velocity.tobytes()
+    assert all(a.buf.shape[0] > 1024 for a in cramped._stepper._arenas)
