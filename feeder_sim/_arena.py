@@ -34,12 +34,18 @@ from typing import NamedTuple
 
 import numba
 from numba import types
-from numba.extending import intrinsic
+from numba.extending import intrinsic, register_jitable
 import numpy as np
 
 from feeder_sim._jit import inner
 
 BASE, CAPACITY, USED, SHORT, PEAK = range(5)
+
+# The allocators are generic functions (``register_jitable``), not dispatchers: numba types
+# them with the plain types of their arguments (a dispatcher is compiled again for every
+# literal it meets: a size of 0, a column count of 3), and LLVM inlines them where they are
+# called (a call of a numba function costs some 20 ns of argument and reference handling).
+_allocator = register_jitable(forceinline=True)
 _ALIGN = 64     # bytes; a cache line, so that no two arrays share one
 
 
@@ -108,13 +114,13 @@ def local_arena(buf):
     return state
 
 
-@inner(machine_inline=True)
+@_allocator
 def mark(ar) -> int:
     """The arena's level now, for :func:`release`."""
     return ar[USED]
 
 
-@inner(machine_inline=True)
+@_allocator
 def release(ar, level: int) -> None:
     """Give back everything handed out since ``mark`` returned ``level``."""
     if ar[USED] > ar[PEAK]:
@@ -122,7 +128,7 @@ def release(ar, level: int) -> None:
     ar[USED] = level
 
 
-@inner(machine_inline=True)
+@_allocator
 def _reserve(ar, nbytes):
     """Offset of ``nbytes`` fresh bytes, or -1 (counted) when the buffer cannot hold them."""
     start = (ar[USED] + (_ALIGN - 1)) & -_ALIGN
@@ -135,7 +141,7 @@ def _reserve(ar, nbytes):
     return start
 
 
-# The heap fallbacks live apart so that the allocators stay small enough to be inlined.
+# The heap fallbacks are calls of their own: a cold path, kept out of every inlined site.
 @inner
 def _heap_f(n):
     return np.empty(n)
@@ -166,7 +172,7 @@ def _heap_like(like, n):
     return np.empty(n, like.dtype)
 
 
-@inner(machine_inline=True)
+@_allocator
 def empty_f(ar, n):
     """``np.empty(n)``."""
     at = _reserve(ar, 8 * n)
@@ -175,7 +181,7 @@ def empty_f(ar, n):
     return numba.carray(_address(ar[BASE] + at, numba.float64), (n,))
 
 
-@inner(machine_inline=True)
+@_allocator
 def empty_f2(ar, n, m):
     """``np.empty((n, m))``."""
     at = _reserve(ar, 8 * n * m)
@@ -184,7 +190,7 @@ def empty_f2(ar, n, m):
     return numba.carray(_address(ar[BASE] + at, numba.float64), (n, m))
 
 
-@inner(machine_inline=True)
+@_allocator
 def empty_i(ar, n):
     """``np.empty(n, np.int64)``."""
     at = _reserve(ar, 8 * n)
@@ -193,7 +199,7 @@ def empty_i(ar, n):
     return numba.carray(_address(ar[BASE] + at, numba.int64), (n,))
 
 
-@inner(machine_inline=True)
+@_allocator
 def empty_b(ar, n):
     """``np.empty(n, np.bool_)``."""
     at = _reserve(ar, n)
@@ -202,7 +208,7 @@ def empty_b(ar, n):
     return numba.carray(_address(ar[BASE] + at, numba.boolean), (n,))
 
 
-@inner(machine_inline=True)
+@_allocator
 def zeros_f(ar, n):
     """``np.zeros(n)``."""
     x = empty_f(ar, n)
@@ -211,7 +217,7 @@ def zeros_f(ar, n):
     return x
 
 
-@inner(machine_inline=True)
+@_allocator
 def zeros_f2(ar, n, m):
     """``np.zeros((n, m))``."""
     x = empty_f2(ar, n, m)
@@ -221,7 +227,7 @@ def zeros_f2(ar, n, m):
     return x
 
 
-@inner(machine_inline=True)
+@_allocator
 def full_i(ar, n, value):
     """``np.full(n, value, np.int64)``."""
     x = empty_i(ar, n)
@@ -230,7 +236,7 @@ def full_i(ar, n, value):
     return x
 
 
-@inner(machine_inline=True)
+@_allocator
 def arange_i(ar, n):
     """``np.arange(n)``."""
     x = empty_i(ar, n)
@@ -239,7 +245,7 @@ def arange_i(ar, n):
     return x
 
 
-@inner(machine_inline=True)
+@_allocator
 def full_b(ar, n, value):
     """``np.full(n, value, np.bool_)``."""
     x = empty_b(ar, n)
@@ -248,7 +254,7 @@ def full_b(ar, n, value):
     return x
 
 
-@inner(machine_inline=True)
+@_allocator
 def copy_f(ar, src):
     """``src.copy()`` of a 1-d float array."""
     x = empty_f(ar, src.shape[0])
@@ -257,7 +263,7 @@ def copy_f(ar, src):
     return x
 
 
-@inner(machine_inline=True)
+@_allocator
 def copy_f2(ar, src):
     """``src.copy()`` of a 2-d float array."""
     n, m = src.shape
@@ -268,7 +274,7 @@ def copy_f2(ar, src):
     return x
 
 
-@inner(machine_inline=True)
+@_allocator
 def copy_i(ar, src):
     """``src.copy()`` of a 1-d int array."""
     x = empty_i(ar, src.shape[0])
@@ -277,7 +283,7 @@ def copy_i(ar, src):
     return x
 
 
-@inner(machine_inline=True)
+@_allocator
 def full_i2(ar, n, m, value):
     """``np.full((n, m), value, np.int64)``."""
     at = _reserve(ar, 8 * n * m)
@@ -291,7 +297,7 @@ def full_i2(ar, n, m, value):
     return x
 
 
-@inner(machine_inline=True)
+@_allocator
 def empty_like(ar, like, n):
     """``np.empty(n, like.dtype)`` (``like`` a 1-d array)."""
     at = _reserve(ar, like.itemsize * n)
@@ -300,7 +306,7 @@ def empty_like(ar, like, n):
     return numba.carray(_address(ar[BASE] + at, like), (n,))
 
 
-@inner(machine_inline=True)
+@_allocator
 def gather(ar, src, idx):
     """``src[idx]`` of a 1-d array."""
     x = empty_like(ar, src, idx.shape[0])
@@ -309,7 +315,7 @@ def gather(ar, src, idx):
     return x
 
 
-@inner(machine_inline=True)
+@_allocator
 def gather_rows(ar, src, idx):
     """``src[idx]`` of an (n, 2) float array."""
     x = empty_f2(ar, idx.shape[0], 2)
@@ -319,7 +325,7 @@ def gather_rows(ar, src, idx):
     return x
 
 
-@inner(machine_inline=True)
+@_allocator
 def concat(ar, x, y):
     """``np.concatenate((x, y))`` of two 1-d arrays of one dtype."""
     n = x.shape[0]

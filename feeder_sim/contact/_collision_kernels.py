@@ -90,7 +90,7 @@ def sorted_unique(ar, x):
 
 @inner
 def _where(ar, mask):
-    n = np.int64(0)     # a literal 0 would compile the allocator for it too
+    n = 0
     for v in mask:
         n += v
     out = empty_i(ar, n)
@@ -183,7 +183,7 @@ def narrow_phase(ar, w, nw, lo, hi, piece_start, piece_body, take, dyn, piece_wi
     param_tol, angle_tol = tol.param_tol, tol.angle_tol
     n_p = piece_body.shape[0]
     ids = empty_i(ar, n_p)
-    n_t = np.int64(0)
+    n_t = 0
     for p in range(n_p):
         if take[p]:
             ids[n_t] = p
@@ -193,7 +193,7 @@ def narrow_phase(ar, w, nw, lo, hi, piece_start, piece_body, take, dyn, piece_wi
     for q in range(n_t):
         key[q] = lo[ids[q], 0]
     order = gather(ar, ids, _argsort(ar, key))
-    cap = np.int64(64)
+    cap = 64
     out_v = empty_i(ar, cap)
     out_e = empty_i(ar, cap)
     out_g = empty_f(ar, cap)
@@ -265,7 +265,7 @@ def clean_contacts(ar, vert, edge, gap, t, cover_start, cover_lo, cover_hi, nxt,
                 keep[i] = False
     # vertex on vertex: keep the contact whose edge belongs to the lower-numbered body
     end = full_i(ar, k, -1)
-    n_cand = np.int64(0)
+    n_cand = 0
     for i in range(k):
         if abs(t[i]) <= param_tol:
             end[i] = edge[i]

@@ -238,7 +238,7 @@ def _dz_direction(ar, A, b, st, nof, lo, hi, d, sigma, amax, cnt):
     dx = zeros_f(ar, m)
     dw = zeros_f(ar, m)
     level = mark(ar)
-    nc = np.int64(0)    # a literal 0 would compile the allocators for it too
+    nc = 0
     for i in range(m):
         if st[i] == _C:
             nc += 1
@@ -318,10 +318,10 @@ def dantzig(ar, A, b, nof, lo, hi, max_pivots):
     x = zeros_f(ar, m)
     w = empty_f(ar, m)
     nodefer = full_b(ar, m, False)
-    cnt = full_i(ar, np.int64(2), 0)      # pivots, singular solves
+    cnt = full_i(ar, 2, 0)                # pivots, singular solves
     best_x = zeros_f(ar, m)
     best_r = np.inf
-    codes = full_i(ar, np.int64(2), 0)
+    codes = full_i(ar, 2, 0)
     ct = empty_f(ar, 2 * m + 4)           # ratio-test candidates: step, priority, row, event
     cp = empty_i(ar, 2 * m + 4)
     ci = empty_i(ar, 2 * m + 4)
