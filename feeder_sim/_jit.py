@@ -52,9 +52,13 @@ def inner(fn: Callable | None = None, *, inline: str = 'never',
     costly to compile). ``@inner(machine_inline=True)`` has LLVM inline the compiled function
     instead (numba's ``forceinline``), nearly free to compile: for tiny helpers called
     everywhere, where numba's calling convention (status word, arguments by pointer, a
-    reference-count call per array) costs more than their body."""
+    reference-count call per array) costs more than their body.
+
+    Such a kernel gets no machine code or cache entry of its own (see :func:`_defer_codegen`):
+    its code is compiled into, and cached with, each ``jit`` kernel that calls it."""
+    options = {**JIT_OPTIONS, 'cache': not _state['deferred_codegen']}
     compile_ = numba.njit(no_cpython_wrapper=True, inline=inline, forceinline=machine_inline,
-                          **JIT_OPTIONS)
+                          **options)
     return compile_ if fn is None else compile_(fn)
 
 
@@ -70,11 +74,11 @@ PACKAGE = os.path.basename(PACKAGE_ROOT)
 _KEEP = 4
 _KEY_DIR = re.compile(r'^[\w.-]+-numba[\w.+]+-[0-9a-f]{16}$')
 _LAST_USED = '.last_used'
-# What a first run of one stepping method compiles, measured on a 2-core machine: 10 s
-# (impulse_based) to 75 s (event_driven); the whole test suite needs several minutes.
-_COLD_COMPILE = '10-80 s'
+# What a first run of one stepping method compiles, measured on a 2-core machine: under 10 s
+# (impulse_based), 48 s (time_stepping), 52 s (event_driven); the test suite several minutes.
+_COLD_COMPILE = '10-60 s'
 
-_state = {'notice_dir': None, 'noticed': False, 'warned': False}
+_state = {'notice_dir': None, 'noticed': False, 'warned': False, 'deferred_codegen': False}
 
 
 def cache_root() -> Path:
@@ -314,6 +318,73 @@ def _listen_for_compiles() -> None:
     event.register('numba:compile', Notice())
 
 
+def _defer_codegen() -> None:
+    """A compiled function without a Python wrapper gets machine code only when something asks.
+
+    numba links the LLVM module of every compiled callee into its caller's, then optimizes and
+    generates machine code for the caller's whole module, callees included. It also does both
+    for each callee's own module the moment the callee is compiled, although the code of a
+    function without a Python wrapper (an :func:`inner` kernel, an implementation of a numpy
+    function) runs only as linked into its callers. Down a chain of kernels that repeated work
+    is a large part of a first compile. Here such a module keeps its function-level optimized
+    IR for callers to link, and is optimized and compiled only if its code is asked for (a
+    pointer, an object file for a cache entry, its assembly). Its entry point is the one numba
+    gives every function without a Python wrapper: address 0, never called. Builds on numba
+    internals: ImportError or AttributeError if they moved."""
+    from numba._dynfunc import make_function
+    from numba.core import codegen, cpu
+
+    library_class, context_class = codegen.JITCodeLibrary, cpu.CPUContext
+    if getattr(context_class.get_executable, '_feeder_sim', False):
+        return
+    get_executable = context_class.get_executable
+    optimize_final_module = library_class._optimize_final_module
+    finalize_final_module = library_class._finalize_final_module
+    demands_code = {name: getattr(library_class, name)
+                    for name in ('get_pointer_to_function', '_get_compiled_object', 'get_asm_str')}
+    library_class._finalize_dynamic_globals  # noqa: B018 (AttributeError if it moved)
+
+    def deferred_executable(self, library, fndesc, env):
+        try:
+            # (a library loaded from a cache entry comes finalized, its module empty)
+            if not library._finalized:
+                library._final_module.get_function(fndesc.llvm_cpython_wrapper_name)
+        except NameError:
+            library._feeder_sim_deferred = True
+            return make_function(fndesc.lookup_module(), fndesc.qualname.split('.')[-1],
+                                 f'no Python wrapper: {fndesc.qualname}', 0, env, (library,))
+        return get_executable(self, library, fndesc, env)
+
+    def optimize_unless_deferred(self):
+        if not getattr(self, '_feeder_sim_deferred', False):
+            optimize_final_module(self)
+
+    def finalize_unless_deferred(self):
+        if getattr(self, '_feeder_sim_deferred', False):
+            self._finalize_dynamic_globals()  # callers read them from the linked IR too
+            self._finalized = True
+        else:
+            finalize_final_module(self)
+
+    def materialized(method):
+        def demand(self, *args, **kwargs):
+            if getattr(self, '_feeder_sim_deferred', False):
+                self._ensure_finalized()
+                self._feeder_sim_deferred = False
+                self._dynamic_globals.clear()
+                optimize_final_module(self)
+                finalize_final_module(self)
+            return method(self, *args, **kwargs)
+        return demand
+
+    deferred_executable._feeder_sim = True
+    context_class.get_executable = deferred_executable
+    library_class._optimize_final_module = optimize_unless_deferred
+    library_class._finalize_final_module = finalize_unless_deferred
+    for name, method in demands_code.items():
+        setattr(library_class, name, materialized(method))
+
+
 def install() -> bool:
     """Route this package's kernels to the keyed cache and announce a first compile.
 
@@ -323,6 +394,11 @@ def install() -> bool:
         _listen_for_compiles()
     except (ImportError, AttributeError, TypeError):
         pass  # a notice only
+    try:
+        _defer_codegen()
+        _state['deferred_codegen'] = True
+    except (ImportError, AttributeError):
+        pass  # callee-only kernels get machine code and a cache entry: slower, the same
     try:
         from numba.core import caching
         impl = getattr(caching, 'CacheImpl', None) or caching._CacheImpl

@@ -96,8 +96,9 @@ def test_cold_warm_relocated_and_a_changed_callee(tmp_path):
     assert key_dir.name == _jit.cache_key(str(first / 'feeder_sim'))
     # the module's folder mirrored under the key: two modules of one name cannot clash
     assert Path(cold['cache_path']) == key_dir / '_probe'
+    # the callee-only kernel has no entry of its own: its code is compiled into the caller's
     assert sorted(p.name.split('-')[0] for p in key_dir.glob('_probe/*.nbi')) == \
-        ['callee.scale', 'caller.probe']
+        ['caller.probe']
     notices = [line for line in err.splitlines() if NOTICE in line]
     assert len(notices) == 1, err
     where = re.escape(str(key_dir))
@@ -162,6 +163,18 @@ def test_the_key_follows_kernel_sources_and_their_constants_only(tmp_path):
     # a renamed kernel module cannot be served entries that name the old module
     (root / 'contact' / '_lcp_kernels.py').rename(root / 'contact' / '_lcp_kernels2.py')
     assert _jit.cache_key(str(root)) != key
+
+
+def test_without_numbas_codegen_internals_callees_get_their_own_machine_code(tmp_path):
+    tree = copy_package(tmp_path / 'tree')
+    cache = tmp_path / 'cache'
+    code = 'from numba.core import codegen\ndel codegen.JITCodeLibrary\n' + RUN
+    for hits in (0, 1):
+        result, err = run(tree, cache, code)
+        assert (result['value'], result['hits']) == (7.0, hits)
+        assert [line for line in err.splitlines() if NOTICE not in line] == []
+    assert sorted(p.name.split('-')[0] for p in Path(result['key_dir']).glob('_probe/*.nbi')) \
+        == ['callee.scale', 'caller.probe']
 
 
 @pytest.mark.parametrize('case', ['numba without the hook', 'unwritable cache directory'])

@@ -79,7 +79,7 @@ def _dense_residual(A, b, x, w, nof, lo, hi):
     return max(r, 0.0)
 
 
-@jit
+@inner
 def lcp_residual(A, b, x, normal_of, lo, hi):
     """:func:`feeder_sim.contact.lcp.residual` of ``x``: inf when ``A x + b`` is not finite."""
     if b.shape[0] == 0:
@@ -676,7 +676,7 @@ def lcp_pattern(x, normal_of, lo, hi):
     return out
 
 
-@jit
+@inner
 def lcp_with_pattern(A, b, normal_of, lo, hi, pattern):
     """The solution with the given row states: clamped rows get w = 0 (least squares)."""
     m = b.shape[0]

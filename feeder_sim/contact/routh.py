@@ -32,7 +32,7 @@ import math
 
 import numpy as np
 
-from feeder_sim._jit import jit
+from feeder_sim._jit import inner, jit
 
 __all__ = ['collide', 'CollisionResult', 'LAWS', 'routh_collision']
 
@@ -62,7 +62,7 @@ class CollisionResult:
         return float(self.impulse[0])
 
 
-@jit
+@inner
 def _rise(un, dun, target):
     """Normal impulse along a ray until u_N reaches ``target`` (0 if already there)."""
     if un >= target:
@@ -72,7 +72,7 @@ def _rise(un, dun, target):
     return math.inf
 
 
-@jit
+@inner
 def _termination(law, e, un0, pn, un, w, pc, wc, dun, v_sep):
     """Normal impulse from the current point of a ray to the end of the collision."""
     if law == NEWTON:

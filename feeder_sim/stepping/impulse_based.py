@@ -103,7 +103,7 @@ import math
 
 import numpy as np
 
-from feeder_sim._jit import jit
+from feeder_sim._jit import inner, jit
 from feeder_sim.contact.candidates import corner_piece_candidates, world_point
 from feeder_sim.contact.collision import Contacts
 from feeder_sim.contact.dynamics import contact_set
@@ -186,7 +186,7 @@ def _poses(t1, h, kind, drive_row, drives, gravity, pos, ang, vel, om, pos1, ang
             ang1[i], om1[i] = ang[i], om[i]
 
 
-@jit
+@inner
 def _piece_gap(px, py, pos, ang, body, start, end, verts, normals, internal):
     """Largest signed distance of a point from a piece's outer edge lines, and that edge."""
     c, s = math.cos(ang[body]), math.sin(ang[body])
@@ -204,13 +204,13 @@ def _piece_gap(px, py, pos, ang, body, start, end, verts, normals, internal):
     return best, face
 
 
-@jit
+@inner
 def _face_frame(ang, body, normals, face):
     c, s = math.cos(ang[body]), math.sin(ang[body])
     return c * normals[face, 0] - s * normals[face, 1], s * normals[face, 0] + c * normals[face, 1]
 
 
-@jit
+@inner
 def _relative(vel, om, a, b, rax, ray, rbx, rby, nx, ny):
     """(u_T, u_N) of a's corner against b's material point, tangent = normal rotated +90."""
     relx = (vel[a, 0] - om[a] * ray) - (vel[b, 0] - om[b] * rby)
@@ -218,7 +218,7 @@ def _relative(vel, om, a, b, rax, ray, rbx, rby, nx, ny):
     return -ny * relx + nx * rely, nx * relx + ny * rely
 
 
-@jit
+@inner
 def _gap_rate(pos, ang, vel, om, a, b, px, py, nx, ny):
     _, un = _relative(vel, om, a, b, px - pos[a, 0], py - pos[a, 1], px - pos[b, 0],
                       py - pos[b, 1], nx, ny)
@@ -226,7 +226,7 @@ def _gap_rate(pos, ang, vel, om, a, b, px, py, nx, ny):
 
 
 # ------------------------------------------------------------------------ kernel: collisions
-@jit
+@inner
 def _resolve(t, pos, ang, vel, om, inv_mass, inv_inertia, cv_body, cv_local, cp_body, cp_start,
              cp_end, c_mu_s, c_mu_d, c_e, verts, normals, internal, eps, v_sep, micro_speed,
              friction_on, law, max_sweeps, acc_n, acc_t, acc_geo, counters, fout):
@@ -327,7 +327,7 @@ def _resolve(t, pos, ang, vel, om, inv_mass, inv_inertia, cv_body, cv_local, cp_
 
 
 # ------------------------------------------------------------------------ kernel: stepping
-@jit
+@inner
 def _toi(g0, u0, gh, h, center, floor):
     """Time in (0, h] at which a gap, quadratic in time through g0 (rate u0) and gh at h,
     comes down to the middle of the contact band (or half way to its floor)."""
@@ -354,7 +354,7 @@ def _toi(g0, u0, gh, h, center, floor):
     return best
 
 
-@jit
+@inner
 def _reach_step(h, speed, g, reach, h_min):
     """Largest step <= h over which speed * h + g h^2 / 2 stays within reach."""
     if speed * h + 0.5 * g * h * h <= reach:

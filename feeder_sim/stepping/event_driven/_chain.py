@@ -27,7 +27,7 @@ from typing import NamedTuple
 import numpy as np
 
 from feeder_sim._arena import heap_arena
-from feeder_sim._jit import jit
+from feeder_sim._jit import inner, jit
 from feeder_sim.model.world import DRIVEN, MOVING
 from feeder_sim.stepping.event_driven import _kernels as kern
 
@@ -189,14 +189,14 @@ def _join(c, d):
         np.concatenate((c.restitution, d.restitution)))
 
 
-@jit
+@inner
 def _geometry(pos, ang, c):
     """World point, normal, gap and edge parameter of the contacts ``c``."""
     return kern.held_geometry(pos, ang, c.body_a, c.body_b, c.vertex_local, c.edge_start,
                               c.edge_end, c.normal)
 
 
-@jit
+@inner
 def _arms(pos, c, point):
     """Contact points relative to the vertex body's and the edge body's origin."""
     k = point.shape[0]
@@ -209,7 +209,7 @@ def _arms(pos, c, point):
     return r_a, r_b
 
 
-@jit
+@inner
 def _free_acceleration(t, kind, index, drives, gravity, acc):
     """Every body's acceleration without contact forces: gravity on the dynamic ones, the
     drive's on driven ones, none on the others."""
@@ -225,14 +225,14 @@ def _free_acceleration(t, kind, index, drives, gravity, acc):
             acc[i, 0] = acc[i, 1] = 0.0
 
 
-@jit
+@inner
 def _segment_distance(px, py, q0x, q0y, q1x, q1y):
     ex, ey = q1x - q0x, q1y - q0y
     s = max(0.0, min(1.0, ((px - q0x) * ex + (py - q0y) * ey) / (ex * ex + ey * ey)))
     return math.hypot(px - q0x - s * ex, py - q0y - s * ey)
 
 
-@jit
+@inner
 def _edge_ends_fired(g, offset, first, end):
     """True if an edge-parameter event function (``g[first:end]``) is below its level."""
     for j in range(first, end):
@@ -241,7 +241,7 @@ def _edge_ends_fired(g, offset, first, end):
     return False
 
 
-@jit
+@inner
 def _touching(pos, ang, held, cands, world, geometry, materials, near_m, touch_m):
     """The contacts contact detection would find at (pos, ang) besides the held ones:
     ``(ok, new contacts)``, not ok where the general path must find them.
@@ -335,7 +335,7 @@ def _record(c, point, normal, p, rec, rows):
     return rows + k
 
 
-@jit
+@inner
 def _count(stats, x, res, pivots):
     """An LCP solved by pivoting into the statistics (``SolverStats.record``)."""
     stats[N_LCPS] += 1
@@ -345,7 +345,7 @@ def _count(stats, x, res, pivots):
     stats[PIVOTS] += pivots
 
 
-@jit
+@inner
 def _impacts(c, pos, ang, vel, om, world, tols, stats, rec, rows):
     """Collision impulses until no contact approaches (``EventDriven._impact``): velocities
     change in place and each impulse is recorded; ``(ok, rows)``."""
@@ -404,7 +404,7 @@ def _impacts(c, pos, ang, vel, om, world, tols, stats, rec, rows):
     return True, rows
 
 
-@jit
+@inner
 def _mode_at_event(t, c, pos, ang, vel, om, model, world, tols, acc, stats):
     """The next mode over the contacts ``c`` (``EventDriven._choose_mode``):
     ``(ok, contacts kept, friction, sigma, normal, r_a, r_b)``; not ok where the general
@@ -461,7 +461,7 @@ def _mode_at_event(t, c, pos, ang, vel, om, model, world, tols, acc, stats):
             r_b[kept])
 
 
-@jit
+@inner
 def _closed_form(c, friction, sigma, normal, r_a, r_b, om, model, world, tols):
     """The phase of the mode (``EventDriven._closed_form``): ``(ok, phi0, phi1, f0, f1)``."""
     kind, index, free_phi0, drives = model
@@ -486,7 +486,7 @@ def _closed_form(c, friction, sigma, normal, r_a, r_b, om, model, world, tols):
     return True, phi0, phi1, np.ascontiguousarray(f[:, 0]), np.ascontiguousarray(f[:, 1:])
 
 
-@jit
+@inner
 def _candidates(near, c):
     """The candidates of a mode (vertex, piece, kernel arrays): those of ``near`` but the
     held corners on their pieces."""

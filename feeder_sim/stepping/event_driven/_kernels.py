@@ -29,7 +29,7 @@ from typing import NamedTuple
 import numpy as np
 
 from feeder_sim._arena import heap_arena
-from feeder_sim._jit import jit
+from feeder_sim._jit import inner, jit
 from feeder_sim.contact._collision_kernels import sorted_unique
 from feeder_sim.contact._lcp_kernels import BOX_ROW, reduce_lcp, SLAVED_ROW
 from feeder_sim.contact._lcp_kernels import lcp_dantzig as lcp_dantzig
@@ -183,7 +183,7 @@ def _poses(t, t0, kind, index, pos0, ang0, vel0, om0, phi0, phi1, dr_u, dr_base,
             om[i] = om0[i]
 
 
-@jit
+@inner
 def edge_line_distance(px, py, pos, c, s, pbody, j, verts, normals):
     """Signed distance (m) of the world point (px, py) from the line of edge ``j`` of body
     ``pbody`` (turned by cos c, sin s), and the edge's world normal."""
@@ -194,7 +194,7 @@ def edge_line_distance(px, py, pos, c, s, pbody, j, verts, normals):
     return nx * (px - qx) + ny * (py - qy), nx, ny
 
 
-@jit
+@inner
 def _vertex_piece_gap(pos, ang, vbody, local, pbody, start, end, verts, normals):
     """Largest signed distance (m) of a corner from a convex piece's edge lines."""
     px, py = world_point(pos, ang, vbody, local)
@@ -207,7 +207,7 @@ def _vertex_piece_gap(pos, ang, vbody, local, pbody, start, end, verts, normals)
     return best
 
 
-@jit
+@inner
 def _gap_off_flush(pos, ang, vbody, local, wedge, pbody, start, end, verts, normals, best):
     """Collision gap (m) of a corner whose largest distance ``best`` from a convex piece's
     edge lines is within FLUSH_M of 0: the largest distance from the lines it does not lie
@@ -227,7 +227,7 @@ def _gap_off_flush(pos, ang, vbody, local, wedge, pbody, start, end, verts, norm
     return inner if inner > -np.inf else best
 
 
-@jit
+@inner
 def _flush(c, s, wedge, nx, ny):
     """True if the corner's piece lies on the inner side of the edge line (normal n) through
     it: both edges leaving the corner run along the line or into the other piece.
@@ -251,7 +251,7 @@ def candidate_gaps(pos, ang, cands, verts, normals, out):
         out[i] = _candidate_gap(pos, ang, cands, i, verts, normals)
 
 
-@jit
+@inner
 def _candidate_gap(pos, ang, cands, i, verts, normals):
     """Collision gap (m) of candidate ``i``: the corner's largest distance from its piece's
     edge lines, leaving out those it lies flush on (``_gap_off_flush``)."""
@@ -264,7 +264,7 @@ def _candidate_gap(pos, ang, cands, i, verts, normals):
     return d
 
 
-@jit
+@inner
 def _geometric_events(params, cands, pos, ang, verts, normals, gap_scale, g, j):
     """The last event functions of a held mode from ``g[j]`` on: each held contact's edge
     parameter and its distance from 1 (both must stay >= 0), then each candidate's gap in
@@ -280,7 +280,7 @@ def _geometric_events(params, cands, pos, ang, verts, normals, gap_scale, g, j):
         j += 1
 
 
-@jit
+@inner
 def _contact_geometry(pos, ang, vel, om, a, b, vloc, q0loc, q1loc, nloc):
     """Edge parameter, tangential relative velocity, point and normal of one contact."""
     px, py = world_point(pos, ang, a, vloc)
@@ -299,7 +299,7 @@ def _contact_geometry(pos, ang, vel, om, a, b, vloc, q0loc, q1loc, nloc):
     return param, v_t, gap, px, py, nx, ny
 
 
-@jit
+@inner
 def _force_events(f, k, mu_s, group, n_groups, force_scale, g):
     """The first event functions of a held mode: each normal force (must stay >= 0), then each
     sticking group's friction-cone margin; returns the next free index of ``g``."""
@@ -319,7 +319,7 @@ def _force_events(f, k, mu_s, group, n_groups, force_scale, g):
     return j
 
 
-@jit
+@inner
 def _events(t, t0, bodies, drives, contacts, cands, verts, normals, scales, pos, ang, vel, om,
             acc_drive, dvel_drive, g):
     kind, index, pos0, ang0, vel0, om0, phi0, phi1 = bodies
@@ -349,7 +349,7 @@ def _events(t, t0, bodies, drives, contacts, cands, verts, normals, scales, pos,
     _geometric_events(params, cands, pos, ang, verts, normals, gap_scale, g, j)
 
 
-@jit
+@inner
 def _speed_bounds(h, bodies, drives, vel, om, speed, turn):
     """Every body's largest translational speed (m/s) and turning rate (rad/s) over the next
     h of a closed-form phase, into ``speed`` and ``turn``."""
@@ -434,7 +434,7 @@ def guarded_integrator_step(h, pos, ang, vel, om, dydt, dyn, drive_acc, cands, g
     return guarded_step(h, pos, ang, speed, turn, cands, g, first, offset, gap_scale)
 
 
-@jit
+@inner
 def _guard_scales(pos, cands, limit):
     """Half the smallest piece width of the candidates (m) and a bound on any candidate
     corner's distance from its piece's origin (m) while no body moves farther than ``limit``
@@ -449,7 +449,7 @@ def _guard_scales(pos, cands, limit):
     return half_width, reach
 
 
-@jit
+@inner
 def _slow(h, speed, turn, radius, half_width, reach):
     """True if no candidate corner can move half the thinnest candidate piece's width relative
     to it within h: then ``guarded_step`` cannot shorten the step, and this costs a pass over
@@ -461,7 +461,7 @@ def _slow(h, speed, turn, radius, half_width, reach):
     return (2.0 * fastest + turning * (reach + 2.0 * h * fastest)) * h <= half_width
 
 
-@jit
+@inner
 def advance_watching(t0, t_end, h, threshold, bodies, drives, contacts, cands, verts,
                      normals, scales, reach, pos, ang, vel, om, dvel_drive, g_hi):
     """Step a closed-form phase from t0 towards t_end in steps of h, watching the events.
@@ -550,7 +550,7 @@ def event_offsets(g_start, n_candidates, threshold):
     return offset
 
 
-@jit
+@inner
 def _locate(tp, h, g_lo, g_hi, hit, t0, offset, bodies, drives, contacts, cands, verts,
             normals, scales, pos, ang, vel, om, acc_drive, dvel_drive, n_events):
     """Earliest time past which a hit function is below its level (Illinois); ``g_lo``,
@@ -884,7 +884,7 @@ DP_E = np.array([35 / 384 - 5179 / 57600, 0.0, 500 / 1113 - 7571 / 16695,
                   -1 / 40])
 
 
-@jit
+@inner
 def _bodies_at(t, y, dyn, kind, index, pos_fixed, ang_fixed, drives, gravity, pos, ang, vel,
                om, acc):
     """Every body's state and free acceleration at t: dynamic bodies from y, driven ones from
@@ -914,7 +914,7 @@ def _bodies_at(t, y, dyn, kind, index, pos_fixed, ang_fixed, drives, gravity, po
         acc[i, 0], acc[i, 1] = gravity[0], gravity[1]
 
 
-@jit
+@inner
 def _mode_rhs(t, y, spec, pos, ang, vel, om, acc, dydt, g, f):
     """Time derivative of y under the held mode, its event functions and contact forces.
 
