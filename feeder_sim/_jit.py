@@ -15,6 +15,10 @@ compile is long and otherwise silent, so it is announced by one line on stderr w
 when) one starts. The scheme is a cache locator put in front of numba's own (a private numba
 interface): a numba without it gets plain ``cache=True`` and one warning line.
 
+Kernels that only other kernels call (:func:`inner`) get no machine code or cache entry of
+their own: numba would compile each of them on its own and again inside every caller (see
+:func:`_defer_codegen`; $FEEDER_SIM_DEFER_CODEGEN=0 turns this off).
+
 ``nogil=True``: kernels release the GIL, so a node's executor threads keep serving callbacks
 while physics runs. ``error_model='numpy'``: a division by zero gives inf/NaN as in numpy
 instead of raising, so a kernel costs no per-division check and its results match the numpy
@@ -66,6 +70,10 @@ def inner(fn: Callable | None = None, *, inline: str = 'never',
 # in the process keeps numba's own locators.
 
 ENV_VAR = 'FEEDER_SIM_CACHE_DIR'
+# '0': every kernel gets machine code of its own as numba does by default (see _defer_codegen):
+# the same results, a slower first compile. For comparing the two, and a way out should a numba
+# release change what the deferral relies on in a way it cannot detect.
+DEFER_ENV_VAR = 'FEEDER_SIM_DEFER_CODEGEN'
 PACKAGE_ROOT = os.path.dirname(os.path.abspath(__file__))
 PACKAGE = os.path.basename(PACKAGE_ROOT)
 
@@ -395,8 +403,9 @@ def install() -> bool:
     except (ImportError, AttributeError, TypeError):
         pass  # a notice only
     try:
-        _defer_codegen()
-        _state['deferred_codegen'] = True
+        if os.environ.get(DEFER_ENV_VAR, '1') != '0':
+            _defer_codegen()
+            _state['deferred_codegen'] = True
     except (ImportError, AttributeError):
         pass  # callee-only kernels get machine code and a cache entry: slower, the same
     try:

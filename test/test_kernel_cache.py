@@ -66,9 +66,10 @@ def copy_package(dest: Path, factor: int = 2) -> Path:
     return dest
 
 
-def run(tree: Path, cache: Path, code: str = RUN) -> tuple[dict | None, str]:
+def run(tree: Path, cache: Path, code: str = RUN,
+        extra_env: dict | None = None) -> tuple[dict | None, str]:
     env = {k: v for k, v in os.environ.items() if not k.startswith(('NUMBA_', 'FEEDER_SIM'))}
-    env.update(PYTHONPATH=str(tree), FEEDER_SIM_CACHE_DIR=str(cache))
+    env.update(PYTHONPATH=str(tree), FEEDER_SIM_CACHE_DIR=str(cache), **(extra_env or {}))
     # cwd: not the source tree, whose feeder_sim would shadow the copy
     proc = subprocess.run([sys.executable, '-c', code], cwd=tree, env=env, capture_output=True,
                           text=True, timeout=120)
@@ -165,12 +166,16 @@ def test_the_key_follows_kernel_sources_and_their_constants_only(tmp_path):
     assert _jit.cache_key(str(root)) != key
 
 
-def test_without_numbas_codegen_internals_callees_get_their_own_machine_code(tmp_path):
+@pytest.mark.parametrize('case', ['numba without the internals', 'turned off'])
+def test_without_deferred_codegen_callees_get_their_own_machine_code(tmp_path, case):
     tree = copy_package(tmp_path / 'tree')
     cache = tmp_path / 'cache'
-    code = 'from numba.core import codegen\ndel codegen.JITCodeLibrary\n' + RUN
+    if case == 'turned off':
+        code, env = RUN, {_jit.DEFER_ENV_VAR: '0'}
+    else:
+        code, env = 'from numba.core import codegen\ndel codegen.JITCodeLibrary\n' + RUN, {}
     for hits in (0, 1):
-        result, err = run(tree, cache, code)
+        result, err = run(tree, cache, code, env)
         assert (result['value'], result['hits']) == (7.0, hits)
         assert [line for line in err.splitlines() if NOTICE not in line] == []
     assert sorted(p.name.split('-')[0] for p in Path(result['key_dir']).glob('_probe/*.nbi')) \

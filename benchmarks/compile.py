@@ -1,0 +1,99 @@
+"""The first run's compile: ``feeder-sim run`` on a cold kernel cache, per stepping method.
+
+Issue target (2-core machine): the kernels a default run needs (``track_one_box``, its
+method event_driven) compile in <= 60 s from a fresh cache directory. Each run is a fresh
+process, ``feeder-sim run track_one_box --duration 0.1 --method M``, with an empty
+``$FEEDER_SIM_CACHE_DIR``; its wall time is nearly all numba compiling. Every method runs
+with callee-only kernels left without machine code of their own (the default) and with
+``$FEEDER_SIM_DEFER_CODEGEN=0`` (numba's own way: every kernel compiled on its own and again
+in each caller), round robin, so the ratio of the two is taken in one run. Prints a table of
+medians of ``--repeats`` and writes ``out/bench/compile.json`` with every run::
+
+    .venv/bin/python benchmarks/compile.py [--repeats 3] [--methods event_driven time_stepping]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from feeder_sim._jit import DEFER_ENV_VAR  # noqa: E402
+
+METHODS = ('event_driven', 'time_stepping', 'impulse_based')
+MODES = {'deferred': '1', 'numba default': '0'}
+TARGET_S = {'event_driven': 60.0}
+
+
+def cold_run(method: str, defer: str) -> dict:
+    """One ``feeder-sim run`` in a fresh process on an empty cache: wall s, peak MiB."""
+    with tempfile.TemporaryDirectory() as cache, tempfile.TemporaryFile('w+') as log:
+        env = {k: v for k, v in os.environ.items() if not k.startswith('NUMBA_')}
+        env.update(FEEDER_SIM_CACHE_DIR=cache, **{DEFER_ENV_VAR: defer})
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(
+            [sys.executable, '-m', 'feeder_sim.cli', 'run', 'track_one_box', '--duration',
+             '0.1', '--method', method], cwd=ROOT, env=env, stdout=log, stderr=log)
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        if proc.returncode:
+            log.seek(0)
+            sys.exit(f'feeder-sim run --method {method} failed:\n{log.read()}')
+    return {'wall_s': wall, 'peak_mib': usage.ru_maxrss / 1024}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser.add_argument('--repeats', type=int, default=3)
+    parser.add_argument('--methods', nargs='+', choices=METHODS,
+                        default=['event_driven', 'time_stepping'])
+    parser.add_argument('--out', type=Path, default=ROOT / 'out' / 'bench' / 'compile.json')
+    args = parser.parse_args()
+    runs: dict[str, dict[str, list]] = {m: {mode: [] for mode in MODES} for m in args.methods}
+    total = args.repeats * len(args.methods) * len(MODES)
+    done = 0
+    for r in range(args.repeats):
+        for method in args.methods:
+            # alternate which mode runs first: the machine drifts
+            for mode in (list(MODES) if r % 2 == 0 else list(MODES)[::-1]):
+                result = cold_run(method, MODES[mode])
+                runs[method][mode].append(result)
+                done += 1
+                print(f'  run {done}/{total}  {method:14s} {mode:14s} {result["wall_s"]:6.1f} s',
+                      flush=True)
+    rows = []
+    print(f'\n{"method":>14s} {"deferred s":>11s} {"numba default s":>16s} {"ratio":>6s} '
+          f'{"target s":>9s} {"peak MiB":>17s}')
+    for method in args.methods:
+        med = {mode: statistics.median(x['wall_s'] for x in runs[method][mode])
+               for mode in MODES}
+        peak = {mode: statistics.median(x['peak_mib'] for x in runs[method][mode])
+                for mode in MODES}
+        ratio = med['deferred'] / med['numba default']
+        target = TARGET_S.get(method)
+        print(f'{method:>14s} {med["deferred"]:11.1f} {med["numba default"]:16.1f} '
+              f'{ratio:6.2f} {target if target else "-":>9} '
+              f'{peak["deferred"]:8.0f} /{peak["numba default"]:7.0f}')
+        rows.append({'method': method, 'median_wall_s': med, 'median_peak_mib': peak,
+                     'ratio': ratio,
+                     'target_s': target, 'runs': runs[method]})
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps({
+        'python': platform.python_version(), 'machine': platform.processor() or platform.machine(),
+        'cpus': os.cpu_count(), 'repeats': args.repeats, 'methods': rows}, indent=1))
+    print(f'wrote {args.out}')
+
+
+if __name__ == '__main__':
+    main()
