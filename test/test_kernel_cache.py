@@ -197,3 +197,61 @@ def test_falls_back_to_numbas_own_cache_with_one_line(tmp_path, case):
     assert len([line for line in lines if NOTICE not in line]) == 1, err
     assert lines[0].startswith('feeder_sim: ')
     assert Path(result['cache_path']) == tree / 'feeder_sim' / '_probe' / '__pycache__'
+
+
+OTHER_NUMBA = '''
+import ctypes, json
+import numba
+import numpy as np
+from feeder_sim import _jit
+from feeder_sim._probe.callee import scale
+
+
+@numba.vectorize(['float64(float64)'])
+def twice(x):
+    return 2.0 * x
+
+
+@numba.njit(no_cpython_wrapper=True)
+def plus_one(x):
+    return x + 1.0
+
+
+@numba.njit
+def user(x):
+    return plus_one(x) * scale(x)
+
+
+@numba.cfunc('float64(float64)')
+def as_c(x):
+    return plus_one(x) * 3.0
+
+
+@numba.njit
+def call(f, x):
+    return f(x)
+
+
+library = plus_one.overloads[plus_one.signatures[0]].library
+deferred = getattr(library, '_feeder_sim_deferred', False)
+address = library.get_pointer_to_function(plus_one.overloads[plus_one.signatures[0]]
+                                          .fndesc.llvm_func_name)
+# numba's calling convention: status = f(&result, &exception info, arguments...)
+native = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_double)(address)
+out, excinfo = ctypes.c_double(), ctypes.c_void_p()
+status = native(ctypes.addressof(out), ctypes.addressof(excinfo), 4.0)
+print(json.dumps({'deferred': _jit._state['deferred_codegen'], 'plus_one_deferred': deferred,
+                  'twice': twice(np.arange(3.0)).tolist(), 'user': user(3.0),
+                  'cfunc': as_c.ctypes(1.0), 'first_class': call(user, 1.0),
+                  'asked_for': [status, out.value]}))
+'''
+
+
+def test_other_numba_code_in_the_process_and_code_asked_for_later(tmp_path):
+    # what the deferral touches is every function without a Python wrapper in the process:
+    # ufuncs, cfuncs, first-class functions of another package keep working, and a deferred
+    # function's own machine code is made when something asks for it (here a pointer, called)
+    tree = copy_package(tmp_path / 'tree')
+    result, err = run(tree, tmp_path / 'cache', OTHER_NUMBA)
+    assert result == {'deferred': True, 'plus_one_deferred': True, 'twice': [0.0, 2.0, 4.0],
+                      'user': 24.0, 'cfunc': 6.0, 'first_class': 4.0, 'asked_for': [0, 5.0]}
