@@ -15,8 +15,8 @@ compile is long and otherwise silent, so it is announced by one line on stderr w
 when) one starts. The scheme is a cache locator put in front of numba's own (a private numba
 interface): a numba without it gets plain ``cache=True`` and one warning line.
 
-Kernels that only other kernels call (:func:`inner`) get no machine code or cache entry of
-their own: numba would compile each of them on its own and again inside every caller (see
+Kernels that only other kernels call (:func:`inner`) get no machine code of their own: numba
+would compile each of them on its own and again inside every caller (see
 :func:`_defer_codegen`; $FEEDER_SIM_DEFER_CODEGEN=0 turns this off).
 
 ``nogil=True``: kernels release the GIL, so a node's executor threads keep serving callbacks
@@ -58,11 +58,10 @@ def inner(fn: Callable | None = None, *, inline: str = 'never',
     everywhere, where numba's calling convention (status word, arguments by pointer, a
     reference-count call per array) costs more than their body.
 
-    Such a kernel gets no machine code or cache entry of its own (see :func:`_defer_codegen`):
-    its code is compiled into, and cached with, each ``jit`` kernel that calls it."""
-    options = {**JIT_OPTIONS, 'cache': not _state['deferred_codegen']}
+    Such a kernel gets no machine code of its own (see :func:`_defer_codegen`): its code is
+    compiled into each ``jit`` kernel that calls it, and its cache entry is its IR."""
     compile_ = numba.njit(no_cpython_wrapper=True, inline=inline, forceinline=machine_inline,
-                          **options)
+                          **JIT_OPTIONS)
     return compile_ if fn is None else compile_(fn)
 
 
@@ -74,6 +73,7 @@ ENV_VAR = 'FEEDER_SIM_CACHE_DIR'
 # the same results, a slower first compile. For comparing the two, and a way out should a numba
 # release change what the deferral relies on in a way it cannot detect.
 DEFER_ENV_VAR = 'FEEDER_SIM_DEFER_CODEGEN'
+_IR_CACHE_KIND = 'feeder_sim:ir'
 PACKAGE_ROOT = os.path.dirname(os.path.abspath(__file__))
 PACKAGE = os.path.basename(PACKAGE_ROOT)
 
@@ -202,8 +202,9 @@ def cache_key(root: str = PACKAGE_ROOT) -> str:
     """The name of the key directory: the kernel sources' hash with the versions of everything
     that shapes the machine code."""
     h = hashlib.sha256()
+    # deferred or not: a deferred function's cache entry is in a form numba cannot read alone
     for part in (sys.implementation.cache_tag, getattr(sys, 'abiflags', ''),
-                 numba.__version__, np.__version__):
+                 numba.__version__, np.__version__, str(_state['deferred_codegen'])):
         h.update(part.encode() + b'\0')
     for rel, text in key_material(root):
         h.update(rel.replace(os.sep, '/').encode() + b'\0' + text.encode() + b'\0')
@@ -336,32 +337,62 @@ def _defer_codegen() -> None:
     function) runs only as linked into its callers. Down a chain of kernels that repeated work
     is a large part of a first compile. Here such a module keeps its function-level optimized
     IR for callers to link, and is optimized and compiled only if its code is asked for (a
-    pointer, an object file for a cache entry, its assembly). Its entry point is the one numba
-    gives every function without a Python wrapper: address 0, never called. Builds on numba
-    internals: ImportError or AttributeError if they moved."""
+    pointer, its assembly). Its cache entry is that IR (numba's holds machine code too), which
+    another process links into new callers as it would have linked the compiled function. Its
+    entry point is the one numba gives every function without a Python wrapper: address 0,
+    never called. Builds on numba internals: ImportError or AttributeError if they moved."""
+    import llvmlite.binding as ll
     from numba._dynfunc import make_function
     from numba.core import codegen, cpu
 
     library_class, context_class = codegen.JITCodeLibrary, cpu.CPUContext
+    codegen_class = codegen.JITCPUCodegen
     if getattr(context_class.get_executable, '_feeder_sim', False):
         return
     get_executable = context_class.get_executable
     optimize_final_module = library_class._optimize_final_module
     finalize_final_module = library_class._finalize_final_module
+    serialize = library_class.serialize_using_object_code
+    unserialize = library_class._unserialize.__func__
+    set_env = codegen_class.set_env
     demands_code = {name: getattr(library_class, name)
                     for name in ('get_pointer_to_function', '_get_compiled_object', 'get_asm_str')}
     library_class._finalize_dynamic_globals  # noqa: B018 (AttributeError if it moved)
 
     def deferred_executable(self, library, fndesc, env):
         try:
-            # (a library loaded from a cache entry comes finalized, its module empty)
-            if not library._finalized:
+            if not getattr(library, '_feeder_sim_deferred', False):
+                # (a library loaded from a cache entry comes finalized, its module empty)
+                if library._finalized:
+                    return get_executable(self, library, fndesc, env)
                 library._final_module.get_function(fndesc.llvm_cpython_wrapper_name)
+                return get_executable(self, library, fndesc, env)
         except NameError:
             library._feeder_sim_deferred = True
-            return make_function(fndesc.lookup_module(), fndesc.qualname.split('.')[-1],
-                                 f'no Python wrapper: {fndesc.qualname}', 0, env, (library,))
-        return get_executable(self, library, fndesc, env)
+        return make_function(fndesc.lookup_module(), fndesc.qualname.split('.')[-1],
+                             f'no Python wrapper: {fndesc.qualname}', 0, env, (library,))
+
+    def serialize_as_ir(self):
+        # a cache entry of a deferred function is its IR (numba's is machine code and IR)
+        if getattr(self, '_feeder_sim_deferred', False):
+            self._ensure_finalized()
+            return (self.name, _IR_CACHE_KIND, self._final_module.as_bitcode())
+        return serialize(self)
+
+    def unserialize_ir(cls, codegen, state):
+        name, kind, data = state
+        if kind != _IR_CACHE_KIND:
+            return unserialize(cls, codegen, state)
+        self = codegen.create_library(name)
+        self._final_module = ll.parse_bitcode(data)
+        self._feeder_sim_deferred = True
+        self._finalize_final_module()
+        return self
+
+    def set_env_if_defined(self, env_name, env):
+        # the environment variable of a function that has no machine code is nowhere yet
+        if self._engine.get_global_value_address(env_name):
+            set_env(self, env_name, env)
 
     def optimize_unless_deferred(self):
         if not getattr(self, '_feeder_sim_deferred', False):
@@ -387,6 +418,9 @@ def _defer_codegen() -> None:
 
     deferred_executable._feeder_sim = True
     context_class.get_executable = deferred_executable
+    library_class.serialize_using_object_code = serialize_as_ir
+    library_class._unserialize = classmethod(unserialize_ir)
+    codegen_class.set_env = set_env_if_defined
     library_class._optimize_final_module = optimize_unless_deferred
     library_class._finalize_final_module = finalize_unless_deferred
     for name, method in demands_code.items():

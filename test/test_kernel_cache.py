@@ -53,6 +53,22 @@ print(json.dumps({'value': value, 'hits': sum(probe.stats.cache_hits.values()),
                   'file': _jit.__file__}))
 '''
 
+# a kernel new to the cache, compiled against the callee's cache entry (its IR)
+NEW_CALLER = '''
+import json
+import numba
+from feeder_sim._probe.callee import scale
+
+
+@numba.njit
+def fresh(x):
+    return scale(x) - 1.0
+
+
+print(json.dumps({'value': fresh(3.0), 'callee_hits': sum(scale.stats.cache_hits.values()),
+                  'callee_misses': sum(scale.stats.cache_misses.values())}))
+'''
+
 
 def copy_package(dest: Path, factor: int = 2) -> Path:
     """A copy of the package with the probe at ``dest/feeder_sim``; returns ``dest``."""
@@ -97,9 +113,8 @@ def test_cold_warm_relocated_and_a_changed_callee(tmp_path):
     assert key_dir.name == _jit.cache_key(str(first / 'feeder_sim'))
     # the module's folder mirrored under the key: two modules of one name cannot clash
     assert Path(cold['cache_path']) == key_dir / '_probe'
-    # the callee-only kernel has no entry of its own: its code is compiled into the caller's
     assert sorted(p.name.split('-')[0] for p in key_dir.glob('_probe/*.nbi')) == \
-        ['caller.probe']
+        ['callee.scale', 'caller.probe']
     notices = [line for line in err.splitlines() if NOTICE in line]
     assert len(notices) == 1, err
     where = re.escape(str(key_dir))
@@ -110,6 +125,8 @@ def test_cold_warm_relocated_and_a_changed_callee(tmp_path):
     warm, err = run(first, cache)
     assert (warm['value'], warm['hits'], warm['misses']) == (7.0, 1, 0)
     assert NOTICE not in err
+    fresh, _ = run(first, cache, NEW_CALLER)
+    assert fresh == {'value': 5.0, 'callee_hits': 1, 'callee_misses': 0}
 
     # the same sources at another path: same key, loaded without compiling
     moved = tmp_path / 'moved'
