@@ -83,7 +83,7 @@ _KEEP = 4
 _KEY_DIR = re.compile(r'^[\w.-]+-numba[\w.+]+-[0-9a-f]{16}$')
 _LAST_USED = '.last_used'
 # What a first run of one stepping method compiles, measured on a 2-core machine: under 10 s
-# (impulse_based), 48 s (time_stepping), 52 s (event_driven); the test suite several minutes.
+# (impulse_based), 44-56 s (time_stepping), 50-59 s (event_driven); the test suite minutes.
 _COLD_COMPILE = '10-60 s'
 
 _state = {'notice_dir': None, 'noticed': False, 'warned': False, 'deferred_codegen': False}
@@ -360,15 +360,15 @@ def _defer_codegen() -> None:
     library_class._finalize_dynamic_globals  # noqa: B018 (AttributeError if it moved)
 
     def deferred_executable(self, library, fndesc, env):
-        try:
-            if not getattr(library, '_feeder_sim_deferred', False):
-                # (a library loaded from a cache entry comes finalized, its module empty)
-                if library._finalized:
-                    return get_executable(self, library, fndesc, env)
+        deferred = getattr(library, '_feeder_sim_deferred', False)
+        # (a library loaded from numba's own cache entry comes finalized, its module empty)
+        if not deferred and not library._finalized:
+            try:
                 library._final_module.get_function(fndesc.llvm_cpython_wrapper_name)
-                return get_executable(self, library, fndesc, env)
-        except NameError:
-            library._feeder_sim_deferred = True
+            except NameError:
+                deferred = library._feeder_sim_deferred = True
+        if not deferred:
+            return get_executable(self, library, fndesc, env)
         return make_function(fndesc.lookup_module(), fndesc.qualname.split('.')[-1],
                              f'no Python wrapper: {fndesc.qualname}', 0, env, (library,))
 
@@ -441,7 +441,7 @@ def install() -> bool:
             _defer_codegen()
             _state['deferred_codegen'] = True
     except (ImportError, AttributeError):
-        pass  # callee-only kernels get machine code and a cache entry: slower, the same
+        pass  # callee-only kernels get machine code of their own: a slower first compile
     try:
         from numba.core import caching
         impl = getattr(caching, 'CacheImpl', None) or caching._CacheImpl
