@@ -12,9 +12,10 @@ arithmetic where that code is the reference (``test/test_pile.py`` holds them to
 Each kernel takes a scratch arena first (``ar``, :mod:`feeder_sim._arena`): the compiled step
 passes its own, calls from Python ``heap_state()``, whose arrays are ordinary numpy ones.
 
-Compile time: about 28 s cold on a 2-core machine for what a single-box time-stepping run
-needs, later runs load machine code from the cache in ~0.5 s. The code avoids numba's
-library sorts, ``lstsq``, ``@`` and slice assignment, and is kept flat, for compile time.
+Compile time (``benchmarks/compile.py``): a cold time-stepping run compiles for some 45 s on
+a 2-core machine, later runs load machine code from the cache in ~0.5 s. The code avoids
+numba's library sorts, ``lstsq``, ``@`` and slice assignment, and is kept flat, for compile
+time.
 """
 
 from __future__ import annotations

@@ -5,8 +5,8 @@ from the full 2k-row problem, with the row states of a solution and a solve on g
 states (the event-driven method re-solves its modes that way).
 
 The port keeps the reference's sets, events and tolerances; it is flat on purpose (three
-functions): numba generates every callee again inside each caller, so deep call trees multiply
-the compile time (``dantzig`` is about 17 s of a cold compile on a 2-core machine). Its
+functions): numba optimizes and compiles every callee again inside each kernel that Python
+calls, so deep call trees multiply the compile time (``benchmarks/compile.py``). Its
 scratch comes from an arena (``ar``, :mod:`feeder_sim._arena`); each pivot's is given back
 before the next.
 """
