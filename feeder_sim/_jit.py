@@ -436,8 +436,12 @@ def install() -> bool:
         _listen_for_compiles()
     except (ImportError, AttributeError, TypeError):
         pass  # a notice only
+    defer = os.environ.get(DEFER_ENV_VAR, '1').strip() or '1'
+    if defer not in ('0', '1'):
+        print(f'{PACKAGE}: {DEFER_ENV_VAR}={defer!r} is neither 0 nor 1; taken as 1 (set it to 0 '
+              'to give every kernel machine code of its own)', file=sys.stderr, flush=True)
     try:
-        if os.environ.get(DEFER_ENV_VAR, '1') != '0':
+        if defer != '0':
             _defer_codegen()
             _state['deferred_codegen'] = True
     except (ImportError, AttributeError):

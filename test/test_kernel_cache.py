@@ -199,6 +199,15 @@ def test_without_deferred_codegen_callees_get_their_own_machine_code(tmp_path, c
         == ['callee.scale', 'caller.probe']
 
 
+def test_a_deferral_setting_other_than_0_or_1_is_one_line_naming_it(tmp_path):
+    tree = copy_package(tmp_path / 'tree')
+    result, err = run(tree, tmp_path / 'cache', RUN, {_jit.DEFER_ENV_VAR: 'false'})
+    assert result['value'] == 7.0
+    lines = [line for line in err.splitlines() if NOTICE not in line]
+    assert lines == [f"feeder_sim: {_jit.DEFER_ENV_VAR}='false' is neither 0 nor 1; taken as 1 "
+                     '(set it to 0 to give every kernel machine code of its own)']
+
+
 @pytest.mark.parametrize('case', ['numba without the hook', 'unwritable cache directory'])
 def test_falls_back_to_numbas_own_cache_with_one_line(tmp_path, case):
     tree = copy_package(tmp_path / 'tree')
