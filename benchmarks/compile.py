@@ -4,10 +4,12 @@ Issue target (2-core machine): the kernels a default run needs (``track_one_box`
 method event_driven) compile in <= 60 s from a fresh cache directory. Each run is a fresh
 process, ``feeder-sim run track_one_box --duration 0.1 --method M``, with an empty
 ``$FEEDER_SIM_CACHE_DIR``; its wall time is nearly all numba compiling. Every method runs
-with callee-only kernels left without machine code of their own (the default) and with
-``$FEEDER_SIM_DEFER_CODEGEN=0`` (numba's own way: every kernel compiled on its own and again
-in each caller), round robin, so the ratio of the two is taken in one run. Prints a table of
-medians of ``--repeats`` and writes ``out/bench/compile.json`` with every run::
+three ways, round robin, so that their ratios are taken in one run: as shipped (callee-only
+kernels left without machine code of their own, reference counts inlined), with
+``$FEEDER_SIM_INLINE_REFCOUNTS=0`` (numba's out-of-line reference counting), and with both
+that and ``$FEEDER_SIM_DEFER_CODEGEN=0`` (numba's own way: every kernel compiled on its own
+and again in each caller). Prints a table of medians of ``--repeats`` and writes
+``out/bench/compile.json`` with every run::
 
     .venv/bin/python benchmarks/compile.py [--repeats 3] [--methods event_driven time_stepping]
 """
@@ -28,18 +30,20 @@ import time
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from feeder_sim._jit import DEFER_ENV_VAR  # noqa: E402
+from feeder_sim._jit import DEFER_ENV_VAR, INLINE_ENV_VAR  # noqa: E402
 
 METHODS = ('event_driven', 'time_stepping', 'impulse_based')
-MODES = {'deferred': '1', 'numba default': '0'}
+MODES = {'shipped': {DEFER_ENV_VAR: '1', INLINE_ENV_VAR: '1'},
+         'out-of-line refcounts': {DEFER_ENV_VAR: '1', INLINE_ENV_VAR: '0'},
+         'numba default': {DEFER_ENV_VAR: '0', INLINE_ENV_VAR: '0'}}
 TARGET_S = {'event_driven': 60.0}
 
 
-def cold_run(method: str, defer: str) -> dict:
+def cold_run(method: str, switches: dict[str, str]) -> dict:
     """One ``feeder-sim run`` in a fresh process on an empty cache: wall s, peak MiB."""
     with tempfile.TemporaryDirectory() as cache, tempfile.TemporaryFile('w+') as log:
         env = {k: v for k, v in os.environ.items() if not k.startswith('NUMBA_')}
-        env.update(FEEDER_SIM_CACHE_DIR=cache, **{DEFER_ENV_VAR: defer})
+        env.update(FEEDER_SIM_CACHE_DIR=cache, **switches)
         t0 = time.perf_counter()
         proc = subprocess.Popen(
             [sys.executable, '-m', 'feeder_sim.cli', 'run', 'track_one_box', '--duration',
@@ -70,24 +74,25 @@ def main() -> None:
                 result = cold_run(method, MODES[mode])
                 runs[method][mode].append(result)
                 done += 1
-                print(f'  run {done}/{total}  {method:14s} {mode:14s} {result["wall_s"]:6.1f} s',
+                print(f'  run {done}/{total}  {method:14s} {mode:22s} {result["wall_s"]:6.1f} s',
                       flush=True)
     rows = []
-    print(f'\n{"method":>14s} {"deferred s":>11s} {"numba default s":>16s} {"ratio":>6s} '
-          f'{"target s":>9s} {"peak MiB":>17s}')
+    short = {'shipped': 'shipped', 'out-of-line refcounts': 'out-of-line',
+             'numba default': 'numba'}
+    print(f'\n{"method":>14s} ' + ' '.join(f'{short[m] + " s":>12s}' for m in MODES)
+          + f' {"ratio to numba":>15s} {"target s":>9s}   peak MiB (same order)')
     for method in args.methods:
         med = {mode: statistics.median(x['wall_s'] for x in runs[method][mode])
                for mode in MODES}
         peak = {mode: statistics.median(x['peak_mib'] for x in runs[method][mode])
                 for mode in MODES}
-        ratio = med['deferred'] / med['numba default']
+        ratio = med['shipped'] / med['numba default']
         target = TARGET_S.get(method)
-        print(f'{method:>14s} {med["deferred"]:11.1f} {med["numba default"]:16.1f} '
-              f'{ratio:6.2f} {target if target else "-":>9} '
-              f'{peak["deferred"]:8.0f} /{peak["numba default"]:7.0f}')
+        print(f'{method:>14s} ' + ' '.join(f'{med[m]:12.1f}' for m in MODES)
+              + f' {ratio:15.2f} {target if target else "-":>9}   '
+              + ' / '.join(f'{peak[m]:.0f}' for m in MODES))
         rows.append({'method': method, 'median_wall_s': med, 'median_peak_mib': peak,
-                     'ratio': ratio,
-                     'target_s': target, 'runs': runs[method]})
+                     'ratio': ratio, 'target_s': target, 'runs': runs[method]})
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({
         'python': platform.python_version(), 'machine': platform.processor() or platform.machine(),

@@ -73,6 +73,7 @@ ENV_VAR = 'FEEDER_SIM_CACHE_DIR'
 # the same results, a slower first compile. For comparing the two, and a way out should a numba
 # release change what the deferral relies on in a way it cannot detect.
 DEFER_ENV_VAR = 'FEEDER_SIM_DEFER_CODEGEN'
+INLINE_ENV_VAR = 'FEEDER_SIM_INLINE_REFCOUNTS'
 _IR_CACHE_KIND = 'feeder_sim:ir'
 PACKAGE_ROOT = os.path.dirname(os.path.abspath(__file__))
 PACKAGE = os.path.basename(PACKAGE_ROOT)
@@ -86,7 +87,8 @@ _LAST_USED = '.last_used'
 # (impulse_based), 44-56 s (time_stepping), 50-59 s (event_driven); the test suite minutes.
 _COLD_COMPILE = '10-60 s'
 
-_state = {'notice_dir': None, 'noticed': False, 'warned': False, 'deferred_codegen': False}
+_state = {'notice_dir': None, 'noticed': False, 'warned': False, 'deferred_codegen': False,
+          'inline_refcounts': False}
 
 
 def cache_root() -> Path:
@@ -202,9 +204,11 @@ def cache_key(root: str = PACKAGE_ROOT) -> str:
     """The name of the key directory: the kernel sources' hash with the versions of everything
     that shapes the machine code."""
     h = hashlib.sha256()
-    # deferred or not: a deferred function's cache entry is in a form numba cannot read alone
+    # deferred or not: a deferred function's cache entry is in a form numba cannot read alone;
+    # inlined reference counts or not: the same results from other machine code
     for part in (sys.implementation.cache_tag, getattr(sys, 'abiflags', ''),
-                 numba.__version__, np.__version__, str(_state['deferred_codegen'])):
+                 numba.__version__, np.__version__, str(_state['deferred_codegen']),
+                 str(_state['inline_refcounts'])):
         h.update(part.encode() + b'\0')
     for rel, text in key_material(root):
         h.update(rel.replace(os.sep, '/').encode() + b'\0' + text.encode() + b'\0')
@@ -427,6 +431,64 @@ def _defer_codegen() -> None:
         setattr(library_class, name, materialized(method))
 
 
+def _switch(name: str, off_means: str) -> bool:
+    """An on/off environment variable, on unless it is 0; anything but 0 or 1 gets one line."""
+    value = os.environ.get(name, '1').strip() or '1'
+    if value not in ('0', '1'):
+        print(f'{PACKAGE}: {name}={value!r} is neither 0 nor 1; taken as 1 (set it to 0 '
+              f'{off_means})', file=sys.stderr, flush=True)
+    return value != '0'
+
+
+# the definition of NRT_incref / NRT_decref in a linked module, up to its attribute group
+_NRT_DEFINITION = re.compile(r'^(define [^\n]*@NRT_(?:incref|decref)\([^\n]*\)[^\n{#]*)#\d+',
+                             re.MULTILINE)
+
+
+def _inline_refcounts() -> None:
+    """Inline numba's reference counting into optimized modules that get machine code.
+
+    numba defines ``NRT_incref`` / ``NRT_decref`` ``noinline``, so that its pruning pass can
+    pair them up as calls while it optimizes a module, and leaves them calls after it: every
+    array handed to a compiled function that is not inlined costs two, even an array without
+    an owner, whose count is never touched (the arenas' arrays, :func:`._arena.borrow`). Such
+    a call is a null test and a return, but it spills the caller's floating-point registers
+    and keeps the test from being folded where the owner is known to be null: a small time
+    step made some 1 400 of them. Here, once numba has optimized (and pruned) the module of a
+    function that gets machine code, the two are inlined and the tests folded where they can
+    be (instruction combining, CFG simplification); the pairs pruned are the same.
+
+    Applies to every function numba compiles in this process. Builds on numba internals
+    (``JITCodeLibrary._optimize_final_module``): AttributeError if they moved."""
+    import llvmlite.binding as ll
+    from numba.core import codegen
+
+    library_class = codegen.JITCodeLibrary
+    optimize_final_module = library_class._optimize_final_module
+    if getattr(optimize_final_module, '_feeder_sim_inline', False):
+        return
+
+    def optimize_then_inline(self):
+        optimize_final_module(self)
+        if getattr(self, '_feeder_sim_deferred', False):
+            return  # no machine code: its callers' modules are inlined in turn
+        text, n = _NRT_DEFINITION.subn(r'\1alwaysinline ', str(self._final_module))
+        if not n:
+            return
+        module = ll.parse_assembly(text)
+        module.name = self._final_module.name
+        builder = ll.create_pass_builder(self._codegen._tm, ll.create_pipeline_tuning_options())
+        passes = ll.create_new_module_pass_manager()
+        passes.add_always_inliner_pass()
+        passes.add_instruction_combine_pass()
+        passes.add_simplify_cfg_pass()
+        passes.run(module, builder)
+        self._final_module = module
+
+    optimize_then_inline._feeder_sim_inline = True
+    library_class._optimize_final_module = optimize_then_inline
+
+
 def install() -> bool:
     """Route this package's kernels to the keyed cache and announce a first compile.
 
@@ -436,16 +498,18 @@ def install() -> bool:
         _listen_for_compiles()
     except (ImportError, AttributeError, TypeError):
         pass  # a notice only
-    defer = os.environ.get(DEFER_ENV_VAR, '1').strip() or '1'
-    if defer not in ('0', '1'):
-        print(f'{PACKAGE}: {DEFER_ENV_VAR}={defer!r} is neither 0 nor 1; taken as 1 (set it to 0 '
-              'to give every kernel machine code of its own)', file=sys.stderr, flush=True)
     try:
-        if defer != '0':
+        if _switch(DEFER_ENV_VAR, 'to give every kernel machine code of its own'):
             _defer_codegen()
             _state['deferred_codegen'] = True
     except (ImportError, AttributeError):
         pass  # callee-only kernels get machine code of their own: a slower first compile
+    try:
+        if _switch(INLINE_ENV_VAR, 'to keep numba\'s out-of-line reference counting'):
+            _inline_refcounts()
+            _state['inline_refcounts'] = True
+    except (ImportError, AttributeError):
+        pass  # numba's out-of-line reference counting: slower small steps
     try:
         from numba.core import caching
         impl = getattr(caching, 'CacheImpl', None) or caching._CacheImpl

@@ -199,13 +199,61 @@ def test_without_deferred_codegen_callees_get_their_own_machine_code(tmp_path, c
         == ['callee.scale', 'caller.probe']
 
 
-def test_a_deferral_setting_other_than_0_or_1_is_one_line_naming_it(tmp_path):
+@pytest.mark.parametrize('name, off_means', [
+    (_jit.DEFER_ENV_VAR, 'to give every kernel machine code of its own'),
+    (_jit.INLINE_ENV_VAR, "to keep numba's out-of-line reference counting")])
+def test_a_switch_other_than_0_or_1_is_one_line_naming_it(tmp_path, name, off_means):
     tree = copy_package(tmp_path / 'tree')
-    result, err = run(tree, tmp_path / 'cache', RUN, {_jit.DEFER_ENV_VAR: 'false'})
+    result, err = run(tree, tmp_path / 'cache', RUN, {name: 'false'})
     assert result['value'] == 7.0
     lines = [line for line in err.splitlines() if NOTICE not in line]
-    assert lines == [f"feeder_sim: {_jit.DEFER_ENV_VAR}='false' is neither 0 nor 1; taken as 1 "
-                     '(set it to 0 to give every kernel machine code of its own)']
+    assert lines == [f"feeder_sim: {name}='false' is neither 0 nor 1; taken as 1 "
+                     f'(set it to 0 {off_means})']
+
+
+# island_groups on heap arrays, 100 times: its islands, numba's own allocation counts, and
+# which reference-count functions its machine code still calls
+REFCOUNTS = '''
+import json, re
+import numpy as np
+from numba.core.runtime import rtsys
+from feeder_sim import _jit
+from feeder_sim._arena import heap_state
+from feeder_sim.contact._island_kernels import island_groups
+
+dynamic = np.array([False, True, True, True, True])
+a, b = np.array([1, 2, 4, 3]), np.array([0, 1, 0, 0])
+islands = [x.tolist() for x in island_groups(heap_state(), 5, dynamic, a, b)]
+before = rtsys.get_allocation_stats()
+for _ in range(100):
+    out = island_groups(heap_state(), 5, dynamic, a, b)
+del out
+after = rtsys.get_allocation_stats()
+asm = island_groups.inspect_asm(island_groups.signatures[0])
+print(json.dumps({'inlined': _jit._state['inline_refcounts'], 'islands': islands,
+                  'allocated': after.mi_alloc - before.mi_alloc,
+                  'freed': after.mi_free - before.mi_free, 'key_dir': str(_jit._key_dir()),
+                  'calls': [len(re.findall(r'\\$' + name + r'\\b', asm))
+                            for name in ('NRT_incref', 'NRT_decref')]}))
+'''
+
+
+def test_reference_counts_inlined_or_not_balance_and_give_the_same_answer(tmp_path):
+    tree = copy_package(tmp_path / 'tree')
+    results = {}
+    for inline in ('1', '0'):
+        results[inline], _ = run(tree, tmp_path / 'cache', REFCOUNTS,
+                                 {_jit.INLINE_ENV_VAR: inline, 'NUMBA_NRT_STATS': '1'})
+    on, off = results['1'], results['0']
+    assert (on['inlined'], off['inlined']) == (True, False)
+    # bodies 1 and 2 joined by a contact, 3 and 4 alone: (order, starts, bodies, body_starts)
+    assert on['islands'] == off['islands'] == [[0, 1, 3, 2], [0, 2, 3, 4], [1, 2, 3, 4],
+                                               [0, 2, 3, 4]]
+    # every array made is freed once, no more: a count dropped or doubled would show here
+    assert on['allocated'] == on['freed'] == off['allocated'] == off['freed'] > 0
+    assert on['calls'] == [0, 0]
+    assert min(off['calls']) > 0
+    assert on['key_dir'] != off['key_dir']
 
 
 @pytest.mark.parametrize('case', ['numba without the hook', 'unwritable cache directory'])
