@@ -440,23 +440,36 @@ def _switch(name: str, off_means: str) -> bool:
     return value != '0'
 
 
-# the definition of NRT_incref / NRT_decref in a linked module, up to its attribute group
-_NRT_DEFINITION = re.compile(r'^(define [^\n]*@NRT_(?:incref|decref)\([^\n]*\)[^\n{#]*)#\d+',
-                             re.MULTILINE)
+# calls of numba's reference counting in an optimized module, and the null tests put in their
+# place (inlined, then the call is made only for an array with an owner)
+_NRT_CALL = re.compile(r'(call [^\n@]*void )@NRT_(incref|decref)\(')
+_NRT_TESTED = '''
+define internal void @NRT_{op}_tested(ptr %owner) alwaysinline {{
+  %owned = icmp ne ptr %owner, null
+  br i1 %owned, label %count, label %done
+count:
+  call void @NRT_{op}(ptr %owner)
+  br label %done
+done:
+  ret void
+}}
+'''
 
 
 def _inline_refcounts() -> None:
-    """Inline numba's reference counting into optimized modules that get machine code.
+    """Test an array's owner for null inline before calling numba's reference counting.
 
     numba defines ``NRT_incref`` / ``NRT_decref`` ``noinline``, so that its pruning pass can
     pair them up as calls while it optimizes a module, and leaves them calls after it: every
     array handed to a compiled function that is not inlined costs two, even an array without
     an owner, whose count is never touched (the arenas' arrays, :func:`._arena.borrow`). Such
-    a call is a null test and a return, but it spills the caller's floating-point registers
-    and keeps the test from being folded where the owner is known to be null: a small time
-    step made some 1 400 of them. Here, once numba has optimized (and pruned) the module of a
-    function that gets machine code, the two are inlined and the tests folded where they can
-    be (instruction combining, CFG simplification); the pairs pruned are the same.
+    a call does nothing but a null test, yet it spills the caller's floating-point registers:
+    a small time step made some 1 400 of them. Here, once numba has optimized (and pruned) the
+    module of a function that gets machine code, every such call is put behind an inlined
+    null test; the calls made for arrays with an owner and the pairs pruned are the same.
+    Inlining the counting itself instead (an atomic update, fences and a destructor call at
+    each of several thousand places) doubled the machine-code generation of the step's
+    module for no further gain.
 
     Applies to every function numba compiles in this process. Builds on numba internals
     (``JITCodeLibrary._optimize_final_module``): AttributeError if they moved."""
@@ -472,15 +485,20 @@ def _inline_refcounts() -> None:
         optimize_final_module(self)
         if getattr(self, '_feeder_sim_deferred', False):
             return  # no machine code: its callers' modules are inlined in turn
-        text, n = _NRT_DEFINITION.subn(r'\1alwaysinline ', str(self._final_module))
-        if not n:
+        ops = set()
+
+        def tested(call):
+            ops.add(call[2])
+            return f'{call[1]}@NRT_{call[2]}_tested('
+
+        text = _NRT_CALL.sub(tested, str(self._final_module))
+        if not ops:
             return
-        module = ll.parse_assembly(text)
+        module = ll.parse_assembly(text + ''.join(_NRT_TESTED.format(op=op) for op in ops))
         module.name = self._final_module.name
         builder = ll.create_pass_builder(self._codegen._tm, ll.create_pipeline_tuning_options())
         passes = ll.create_new_module_pass_manager()
         passes.add_always_inliner_pass()
-        passes.add_instruction_combine_pass()
         passes.add_simplify_cfg_pass()
         passes.run(module, builder)
         self._final_module = module
