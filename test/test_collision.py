@@ -592,6 +592,28 @@ def test_ordering_is_sorted_and_deterministic():
     assert len(set(zip(c1.vertex_a.tolist(), c1.edge_b.tolist(), strict=True))) == c1.n
 
 
+@pytest.mark.parametrize("tilt", [0.0, 0.05])
+def test_order_by_one_key_is_the_order_by_two_sorts(monkeypatch, tilt):
+    # clean_contacts orders by one composite key where (bodies x vertices)^2 fits in int64,
+    # else by two stable sorts; a vertex count that overflows the one key takes the other way
+    from feeder_sim.contact import collision
+
+    kernel = collision.clean_contacts
+    orders = []
+
+    def both_ways(*args):
+        *head, n_vertices, n_bodies, param_tol, angle_tol = args
+        one_key = kernel(*head, n_vertices, n_bodies, param_tol, angle_tol)
+        two_sorts = kernel(*head, 10**6, 10**4, param_tol, angle_tol)
+        orders.append((one_key.tolist(), two_sorts.tolist()))
+        return one_key
+
+    monkeypatch.setattr(collision, 'clean_contacts', both_ways)
+    c = many_boxes_scene(30, tilt=tilt, spacing_gap=5e-7).contacts()
+    assert len(orders) == 1 and len(orders[0][0]) == c.n > 60
+    assert orders[0][0] == orders[0][1]
+
+
 @pytest.mark.parametrize("n", [10, 100, 1000])
 def test_scaling_many_boxes(n, capsys):
     sc = many_boxes_scene(n)

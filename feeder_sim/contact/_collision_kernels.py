@@ -15,6 +15,8 @@ from feeder_sim._arena import empty_f, empty_i, full_b, full_i, gather
 from feeder_sim._jit import inner, jit
 
 _RUN = 16      # _argsort's insertion-sorted runs
+# bodies x vertices below which (bodies x vertices)^2 fits in int64 (2^63 ~ 9.2e18)
+_ONE_KEY_LIMIT = 3_000_000_000
 
 
 @inner
@@ -339,7 +341,8 @@ def clean_contacts(ar, vert, edge, gap, t, cover_start, cover_lo, cover_hi, nxt,
             s0 = s1
         idx = _where(ar, keep)
         n = idx.shape[0]
-    # final order
+    # final order: by k1 (the body pair), then k2 (vertex, edge), then found order; one sort
+    # of k1 x n_vertices^2 + k2 where that fits in int64, else by k2 then stably by k1
     k1 = empty_i(ar, n)
     k2 = empty_i(ar, n)
     for q in range(n):
@@ -347,6 +350,11 @@ def clean_contacts(ar, vert, edge, gap, t, cover_start, cover_lo, cover_hi, nxt,
         ba, bb = vbody[vert[i]], vbody[edge[i]]
         k1[q] = min(ba, bb) * n_bodies + max(ba, bb)
         k2[q] = vert[i] * n_vertices + edge[i]
+    if n_bodies * n_vertices < _ONE_KEY_LIMIT:
+        span = n_vertices * n_vertices
+        for q in range(n):
+            k1[q] = k1[q] * span + k2[q]
+        return gather(ar, idx, _argsort(ar, k1))
     o2 = _argsort(ar, k2)
     o1 = _argsort(ar, gather(ar, k1, o2))
     return gather(ar, idx, gather(ar, o2, o1))
