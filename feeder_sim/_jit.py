@@ -494,7 +494,12 @@ def _inline_refcounts() -> None:
         text = _NRT_CALL.sub(tested, str(self._final_module))
         if not ops:
             return
-        module = ll.parse_assembly(text + ''.join(_NRT_TESTED.format(op=op) for op in ops))
+        try:
+            module = ll.parse_assembly(text + ''.join(_NRT_TESTED.format(op=op) for op in ops))
+        except RuntimeError as e:  # an LLVM whose IR reads otherwise (typed pointers)
+            _warn(f'reference-count calls left as numba makes them (slower small steps): '
+                  f'{str(e).splitlines()[0]}; {INLINE_ENV_VAR}=0 skips the attempt')
+            return
         module.name = self._final_module.name
         builder = ll.create_pass_builder(self._codegen._tm, ll.create_pipeline_tuning_options())
         passes = ll.create_new_module_pass_manager()

@@ -257,6 +257,19 @@ def test_reference_counts_inlined_or_not_balance_and_give_the_same_answer(tmp_pa
     assert on['key_dir'] != off['key_dir']
 
 
+def test_null_tests_that_llvm_cannot_read_leave_numbas_calls_with_one_line(tmp_path):
+    tree = copy_package(tmp_path / 'tree')
+    code = REFCOUNTS.replace('from feeder_sim import _jit\n',
+                             'from feeder_sim import _jit\n_jit._NRT_TESTED = "not IR {op}"\n')
+    result, err = run(tree, tmp_path / 'cache', code, {'NUMBA_NRT_STATS': '1'})
+    assert result['islands'] == [[0, 1, 3, 2], [0, 2, 3, 4], [1, 2, 3, 4], [0, 2, 3, 4]]
+    assert result['allocated'] == result['freed'] > 0
+    assert result['tests'] == 0
+    lines = [line for line in err.splitlines() if NOTICE not in line]
+    assert len(lines) == 1 and lines[0].startswith(
+        'feeder_sim: reference-count calls left as numba makes them'), err
+
+
 @pytest.mark.parametrize('case', ['numba without the hook', 'unwritable cache directory'])
 def test_falls_back_to_numbas_own_cache_with_one_line(tmp_path, case):
     tree = copy_package(tmp_path / 'tree')
