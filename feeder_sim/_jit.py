@@ -415,8 +415,9 @@ def _defer_codegen() -> None:
                 self._ensure_finalized()
                 self._feeder_sim_deferred = False
                 self._dynamic_globals.clear()
-                optimize_final_module(self)
-                finalize_final_module(self)
+                # the class's own steps, so that whatever else is installed on them applies
+                self._optimize_final_module()
+                self._finalize_final_module()
             return method(self, *args, **kwargs)
         return demand
 
