@@ -343,17 +343,18 @@ def clean_contacts(ar, vert, edge, gap, t, cover_start, cover_lo, cover_hi, nxt,
         n = idx.shape[0]
     # final order: by k1 (the body pair), then k2 (vertex, edge), then found order; one sort
     # of k1 x n_vertices^2 + k2 where that fits in int64, else by k2 then stably by k1
+    one_key = n_bodies * n_vertices < _ONE_KEY_LIMIT
+    span = n_vertices * n_vertices if one_key else 1
     k1 = empty_i(ar, n)
     k2 = empty_i(ar, n)
     for q in range(n):
         i = idx[q]
         ba, bb = vbody[vert[i]], vbody[edge[i]]
-        k1[q] = min(ba, bb) * n_bodies + max(ba, bb)
         k2[q] = vert[i] * n_vertices + edge[i]
-    if n_bodies * n_vertices < _ONE_KEY_LIMIT:
-        span = n_vertices * n_vertices
-        for q in range(n):
+        k1[q] = min(ba, bb) * n_bodies + max(ba, bb)
+        if one_key:
             k1[q] = k1[q] * span + k2[q]
+    if one_key:
         return gather(ar, idx, _argsort(ar, k1))
     o2 = _argsort(ar, k2)
     o1 = _argsort(ar, gather(ar, k1, o2))
