@@ -289,9 +289,12 @@ def test_contact_groups_and_candidate_masks_match_numpy():
         group = np.full(k, -1)       # the numpy transcription of _groups
         for i in range(k):
             if group[i] < 0:
+                # one line: the same tangent on each body (parallel normals, same order, or
+                # opposite normals, bodies swapped)
                 same = (np.minimum(a, b) == min(a[i], b[i])) & \
                     (np.maximum(a, b) == max(a[i], b[i])) & \
-                    (np.abs(normal @ (-normal[i, 1], normal[i, 0])) < 1e-9) & (group < 0)
+                    (np.abs(normal @ (-normal[i, 1], normal[i, 0])) < 1e-9) & \
+                    ((normal @ normal[i] > 0) == (a == a[i])) & (group < 0)
                 group[same] = group.max(initial=-1) + 1
         assert np.array_equal(kern.contact_groups(a, b, normal), group)
         friction = rng.integers(0, 3, k)

@@ -700,8 +700,17 @@ def closed_form_mode(normal, r_a, r_b, body_a, body_b, dynamic, inv_mass, inv_in
 
 @jit
 def contact_groups(body_a, body_b, normal):
-    """Group ids of contacts between the same two bodies along one line (parallel normals),
-    numbered in order of each group's first contact."""
+    """Group ids of contacts between the same two bodies along one line, numbered in order of
+    each group's first contact.
+
+    Along one line means that the friction of every contact of the group acts on each body
+    along the same tangent: normals parallel with the bodies in the same order (the two
+    corners of a box lying on a face), or opposite with the bodies swapped (a box overhanging
+    a track's end rests on the track's corner, a vertex of the track on the box's face, and
+    on its own corner on the track's face). Summed as they stand, the friction forces of a
+    group are then its total along its first contact's tangent. Contacts on opposite faces
+    of one body (a part between the jaws of a slot) press from two lines: they are not
+    grouped."""
     k = body_a.shape[0]
     group = np.full(k, -1, np.int64)
     nxt = 0
@@ -709,11 +718,12 @@ def contact_groups(body_a, body_b, normal):
         if group[i] >= 0:
             continue
         lo_i, hi_i = min(body_a[i], body_b[i]), max(body_a[i], body_b[i])
-        px, py = -normal[i, 1], normal[i, 0]
+        nx, ny = normal[i, 0], normal[i, 1]
         for j in range(k):
             if group[j] < 0 and min(body_a[j], body_b[j]) == lo_i and \
                     max(body_a[j], body_b[j]) == hi_i and \
-                    abs(normal[j, 0] * px + normal[j, 1] * py) < 1e-9:
+                    abs(normal[j, 1] * nx - normal[j, 0] * ny) < 1e-9 and \
+                    (normal[j, 0] * nx + normal[j, 1] * ny > 0.0) == (body_a[j] == body_a[i]):
                 group[j] = nxt
         nxt += 1
     return group
@@ -812,8 +822,8 @@ def mode_rows(f, a_rel, fr, mu_s, sigma, force_tol, acc_tol, body_a, body_b, nor
     The contacts of one body pair along one line (``contact_groups``) share their friction:
     only its sum is determined, and an LCP answer may squeeze them, the friction of one at
     +mu f_N and of another at -mu f_N. Such a contact slides only if the group's friction
-    is at the group's bound too (each contact's friction counted along the first contact's
-    tangent)."""
+    is at the group's bound too (the sum of its contacts' friction forces, each along its own
+    tangent, which ``contact_groups`` makes the same on each body)."""
     k = fr.shape[0]
     keep = np.empty(k, np.bool_)
     friction = np.empty(k, np.int64)
@@ -821,14 +831,9 @@ def mode_rows(f, a_rel, fr, mu_s, sigma, force_tol, acc_tol, body_a, body_b, nor
     group = contact_groups(body_a, body_b, normal)
     total_t = np.zeros(k)
     bound = np.zeros(k)
-    first = np.full(k, -1, np.int64)
     for i in range(k):
-        g = group[i]
-        if first[g] < 0:
-            first[g] = i
-        same = body_a[i] == body_a[first[g]]
-        total_t[g] += f[k + i] if same else -f[k + i]
-        bound[g] += mu_s[i] * f[i]
+        total_t[group[i]] += f[k + i]
+        bound[group[i]] += mu_s[i] * f[i]
     for i in range(k):
         f_n, f_t, a_n, a_t = f[i], f[k + i], a_rel[i], a_rel[k + i]
         keep[i] = f_n > force_tol or a_n <= acc_tol

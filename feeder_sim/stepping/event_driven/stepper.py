@@ -56,10 +56,12 @@ The impulse and force LCPs first try the final active set of the last pivoting s
 problem of the same shape and keep it when the LCP residual accepts it: the events of a
 periodic motion pose nearly the same problems every cycle.
 
-Parallel contacts between the same two bodies (an edge lying on an edge) share their loads in
-a way rigid-body mechanics leaves open, so friction is tested on the group's totals, both when
-a phase is held and when the force LCP's answer picks the next mode (an answer may squeeze the
-group, one contact's friction at +mu f_N and another's at -mu f_N: the group still sticks).
+Parallel contacts between the same two bodies (an edge lying on an edge, or a part
+overhanging a track's end: its corner on the track and the track's corner on it) share their
+loads in a way rigid-body mechanics leaves open, so friction is tested on the group's totals,
+both when a phase is held and when the force LCP's answer picks the next mode (an answer may
+squeeze the group, one contact's friction at +mu f_N and another's at -mu f_N: the group still
+sticks).
 When the force LCP has no solution (Painlevé configurations: a rod sliding on its tip with
 much friction, a box thrown along the floor with mu above its aspect ratio) a contact that
 slides on a ray along which its normal velocity falls takes Génot & Brogliato's tangential
