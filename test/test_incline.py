@@ -70,3 +70,41 @@ def test_block_overhanging_the_slopes_end_slides_like_one_on_the_slope(method, r
     sim.advance(0.06)         # 1.9 mm: the centre stays 2 mm inside the end
     assert s0 - along(sim) == pytest.approx(0.5 * a * 0.06 ** 2, rel=rel)
     assert abs(sim.state.angle[1] - theta) < turn_rad
+
+
+def offset_stack(method: str, offset_m: float) -> Simulator:
+    """Two ``incline_slide`` blocks stacked on a 20 degree slope that holds the lower one
+    (mu 0.8), the upper one ``offset_m`` along the slope: offset, it rests on its own corner
+    on the lower block's face and on the lower block's corner on its face."""
+    theta = math.radians(20.0)
+    blocks = {'mu_static': 0.3, 'mu_dynamic': 0.25, 'restitution': 0.0}
+    slope = {'name': 'incline', 'type': 'static',
+             'polygon': [[-0.2, -0.02], [0.2, -0.02], [0.2, 0.0], [-0.2, 0.0]],
+             'pose': [0.0, 0.0, theta], 'mu_static': 0.8, 'mu_dynamic': 0.8, 'restitution': 0.0}
+    lower = {'name': 'lower', 'type': 'dynamic', 'polygon': box(0.01, 0.005), 'mass': 0.01,
+             'pose': [*on_slope(0.0, 0.005, theta), theta], **blocks}
+    upper = {'name': 'upper', 'type': 'dynamic', 'polygon': box(0.01, 0.005), 'mass': 0.01,
+             'pose': [*on_slope(offset_m, 0.015, theta), theta], **blocks}
+    scene = scene_dict('offset_stack', [slope, lower, upper], method, 1e-3)
+    scene['track'] = 'incline'
+    return Simulator(build(scene))
+
+
+@pytest.mark.parametrize('method, rel, still_m', [('event_driven', 1e-6, 1e-12),
+                                                  ('time_stepping', 1e-3, 1e-12),
+                                                  ('impulse_based', 2e-2, 2e-5)])
+@pytest.mark.parametrize('offset_m', [-0.006, 0.0, 0.006])
+def test_upper_block_of_an_offset_stack_slides_on_the_lower_one(method, rel, still_m,
+                                                                 offset_m):
+    # The lower block sticks to the slope (mu 0.8 > tan 20); the upper one slides down its
+    # face at g (sin 20 - 0.25 cos 20) however far it overhangs (while its centre stays over
+    # the lower block): part on part, the overhanging case pairs a corner of each block on
+    # the other's face, one friction group.
+    theta = math.radians(20.0)
+    a = G * (math.sin(theta) - 0.25 * math.cos(theta))
+    sim = offset_stack(method, offset_m)
+    s0, _ = sim.track_coordinates()
+    sim.advance(0.05)
+    s1, _ = sim.track_coordinates()
+    assert abs(s1[0] - s0[0]) < still_m
+    assert s0[1] - s1[1] == pytest.approx(0.5 * a * 0.05 ** 2, rel=rel)
