@@ -21,6 +21,10 @@ import numpy as np
 from feeder_sim.contact.dynamics import SolverStats
 from feeder_sim.model.scene import (
     load_scene,
+    MAX_ANGLE_RAD,
+    MAX_LENGTH_M,
+    MAX_SPEED_MPS,
+    MAX_SPIN_RAD_S,
     override_solver,
     parse_scene,
     Scene,
@@ -261,7 +265,7 @@ class Feed:
         return min(self.next_t, default=math.inf)
 
     def counts(self) -> dict[str, int]:
-        kinds = ('added', 'blocked', 'fell_back', 'left')
+        kinds = ('added', 'blocked', 'fell_back', 'left', 'lost')
         return {k: sum(e[2] == k for e in self.events) for k in kinds}
 
     def arrive(self, sim: Simulator) -> None:
@@ -343,6 +347,7 @@ class Simulator:
         # index in self.world of each body of the starting scene (parts come and go)
         self._start_index = list(range(len(scene.bodies)))
         self.stats = SolverStats()
+        self.lost_parts: list[tuple[float, str]] = []    # (t s, name) of parts that left
         self._told: set[str] = set()     # kinds of inexact answers already logged
         self.state = self.world.initial_state()
         self._log = _ImpulseLog()
@@ -522,14 +527,44 @@ class Simulator:
         origin, angle = self.world.body_frame_pose(self.state)
         bodies = list(self.scene.bodies)
         for i in self.part_indices:
-            bodies[i] = replace(bodies[i], pose=np.array([*origin[i], angle[i]]),
+            theta = angle[i]
+            if abs(theta) > MAX_ANGLE_RAD:
+                # a part that turned over many times: the same orientation, within the bounds
+                theta = math.remainder(theta, 2.0 * math.pi)
+            bodies[i] = replace(bodies[i], pose=np.array([*origin[i], theta]),
                                 velocity=np.array([*self.state.velocity[i], self.state.omega[i]]))
         return bodies
+
+    def _without_lost(self, bodies: list, old_index: list[int | None]) -> tuple[list, list]:
+        """``bodies`` without the parts that left the world (farther than ``MAX_LENGTH_M`` or
+        faster than ``MAX_SPEED_MPS`` / ``MAX_SPIN_RAD_S``, or not finite: a part that fell off
+        a track with nothing below it), which a scene cannot hold: each is taken away, listed
+        in ``lost_parts`` (time, name), logged, and counted as ``lost`` by the feed."""
+        def inside(body) -> bool:
+            p, v = body.pose, body.velocity
+            return bool(np.all(np.abs(p[:2]) <= MAX_LENGTH_M)
+                        and np.all(np.abs(v[:2]) <= MAX_SPEED_MPS)
+                        and abs(v[2]) <= MAX_SPIN_RAD_S)
+
+        keep = [k for k, body in enumerate(bodies) if body.type != 'dynamic' or inside(body)]
+        if len(keep) == len(bodies) or not keep:
+            return bodies, old_index
+        for k in sorted(set(range(len(bodies))) - set(keep)):
+            name = bodies[k].name
+            self.lost_parts.append((self.state.t, name))
+            if self.feed is not None:
+                self.feed.events.append((self.state.t, name, 'lost'))
+            log.warning('%s: part %r left the world by t = %.6f s (at %s m, moving at %s m/s); '
+                        'taken away', self.scene.name, name, self.state.t,
+                        np.array2string(bodies[k].pose[:2], precision=4),
+                        np.array2string(bodies[k].velocity[:2], precision=4))
+        return [bodies[k] for k in keep], [old_index[k] for k in keep]
 
     def _rebuild(self, bodies: list, old_index: list[int | None]) -> None:
         """A world of ``bodies`` (body k was body ``old_index[k]``, None: new) at the current
         time: validated as a scene, drives carried over (with the commands they received),
         the stepper started afresh; contacts not yet taken are dropped."""
+        bodies, old_index = self._without_lost(bodies, old_index)
         # checked as a scene file, without the sources and sinks (their templates may have
         # left: the feed keeps its own copies)
         data = scene_to_dict(replace(self.scene, bodies=tuple(bodies), sources=(), sinks=()))

@@ -124,3 +124,31 @@ def test_a_source_goes_on_after_its_template_part_was_taken_away():
     assert names == ('drop_1', 'drop_2')                        # at 0.1 and 0.3 s
     assert angle[-1] == pytest.approx(0.3, abs=1e-12)            # just arrived, not turned
     assert sim.feed.counts()['added'] == 2
+
+
+def test_a_part_that_left_the_world_is_taken_away_not_the_run(caplog):
+    # A part that fell off a track with nothing below passes the scene bounds (10 km, after
+    # 45 s of free fall); the next arrival rebuilds the world, where it cannot be written as a
+    # scene: it is taken away and counted as lost, one warning, and the run goes on. A part
+    # that turned over a thousand radians keeps its orientation.
+    data = copy.deepcopy(RAIN)
+    data['sinks'] = []
+    sim = Simulator(parse_scene(data))
+    sim.advance_to(0.15)                                 # drop and drop_1
+    names = [sim.world.names[i] for i in sim.part_indices]
+    assert names == ['drop', 'drop_1']
+    fallen, spun = sim.part_indices
+    sim.state.position[fallen] = [0.0, -2.0e4]
+    sim.state.velocity[fallen] = [0.0, -630.0]
+    sim.state.angle[spun] += 2 * math.pi * 200
+    angle_before = float(sim.state.angle[spun])
+    with caplog.at_level('WARNING', logger='feeder_sim'):
+        sim.advance_to(0.35)                             # arrivals at 0.3 s rebuild the world
+    assert [sim.world.names[i] for i in sim.part_indices] == ['drop_1', 'drop_2']
+    assert sim.lost_parts == [(pytest.approx(0.3), 'drop')]
+    assert sim.feed.counts()['lost'] == 1
+    assert sum("part 'drop' left the world" in r.getMessage() for r in caplog.records) == 1
+    turned = sim.state.angle[sim.part_indices[0]]
+    assert abs(turned) <= math.pi
+    assert math.cos(turned) == pytest.approx(math.cos(angle_before), abs=1e-9)
+    assert math.sin(turned) == pytest.approx(math.sin(angle_before), abs=1e-9)
