@@ -68,9 +68,15 @@ slack per side, Lemke's complementary pivoting with an artificial variable, lexi
 test, ray termination) -> ``'pgs'`` (projected Gauss-Seidel, bounds from the current normals) ->
 ``'frictionless'`` (friction x = 0, normal rows alone by Dantzig, else PGS). A problem whose
 normal rows all have b >= 0 is answered by x = 0 (``'trivial'``) without running any of them.
-Every candidate is checked with ``residual``; a non-finite or inaccurate one counts as a failure
-(``fallbacks`` += 1, the reason goes to ``message``). If every method fails, the finite
-candidate with the smallest residual is returned with ``converged=False``. ``solve`` never
+Every candidate is checked with ``residual`` (within ``tol``) and with the same measure on the
+velocity scale of b alone (``S = max|b|``, not grown by the candidate's own ``max|A| max|x|``;
+within ``sqrt(tol)``): the round-off of an exact answer to an ill-conditioned problem passes,
+but where A is singular (a wedged part, redundant corners) a squeeze along its null space does
+not, which Lemke has answered with 2.4e9 N s, a residual of 1e-14 and 0.035 m/s of velocity
+error (3 on b's scale). A non-finite or inaccurate candidate counts as a failure (``fallbacks``
++= 1, the reason goes to ``message``). If every method fails, the finite candidate with the
+smallest residual on b's scale is returned with ``converged=False``; a result reports the
+scale-free ``residual``. ``solve`` never
 raises for well-formed input (``FrictionalLCP`` validates it), never loops without bound and
 never returns NaN or inf.
 
@@ -187,14 +193,15 @@ class _Data:
     def of(cls, problem: FrictionalLCP) -> _Data:
         return cls(problem.A, problem.b, problem.normal_of, problem.mu_lo, problem.mu_hi)
 
-    def residual(self, x: np.ndarray) -> float:
+    def residual(self, x: np.ndarray, on_b: bool = False) -> float:
+        """``residual``; ``on_b``: on the velocity scale of b alone (see ``solve``)."""
         if self.m == 0:
             return 0.0
         w = self.A @ x + self.b
         xmax = float(np.abs(x).max())
         if not (math.isfinite(xmax) and math.isfinite(float(w.sum()))):
             return math.inf     # also keeps NaN out of the max() below
-        s_w = max(1e-300, self.bmax, self.amax * xmax)
+        s_w = max(1e-300, self.bmax, 0.0 if on_b else self.amax * xmax)
         s_x = s_w / self.amax if self.amax > 0.0 else max(1e-300, xmax)
         if self.m <= 12:
             return self._residual_small(x.tolist(), w.tolist(), s_x, s_w)
@@ -909,20 +916,25 @@ def solve(problem: FrictionalLCP, *, tol: float = 1e-9, max_pivots: int | None =
                 else:
                     x, piv, msg = _frictionless(data, tol, max_pivots, pgs_sweeps)
                 res = data.residual(x)
+                res_b = data.residual(x, on_b=True)
         except (np.linalg.LinAlgError, ValueError, FloatingPointError, ZeroDivisionError,
                 OverflowError, MemoryError) as exc:
-            x, piv, msg, res = np.zeros(m), 0, f'{type(exc).__name__}: {exc}', math.inf
+            x, piv, msg = np.zeros(m), 0, f'{type(exc).__name__}: {exc}'
+            res = res_b = math.inf
         total += piv
-        if res <= tol:
+        if res <= tol and res_b <= math.sqrt(tol):
             return LCPResult(x, problem.A @ x + b, meth, total, len(failures), res, True,
                              '; '.join(failures))
+        if not msg and res <= tol:
+            msg = (f'residual {res:.3g} only on the scale of its own max|x| '
+                   f'{np.abs(x).max():.3g}; {res_b:.3g} on the velocity scale of b')
         failures.append(f'{meth}: {msg or f"residual {res:.3g} > tol {tol:.3g}"}')
-        if math.isfinite(res) and (best is None or res < best[0]):
-            best = (res, x, meth)
+        if math.isfinite(res_b) and (best is None or res_b < best[0]):
+            best = (res_b, res, x, meth)
     if best is None:
         x = np.zeros(m)
-        best = (data.residual(x), x, methods[-1])
-    res, x, meth = best
+        best = (data.residual(x, on_b=True), data.residual(x), x, methods[-1])
+    _, res, x, meth = best
     return LCPResult(x, problem.A @ x + b, meth, total, len(failures), res, False,
                      '; '.join(failures))
 
