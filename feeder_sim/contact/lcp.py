@@ -62,23 +62,22 @@ again in one piece ("polish") when enough pivots happened for round-off to matte
 
 Fallback ladder
 ---------------
-``solve`` runs the methods in order and returns the first candidate whose ``residual`` is
-within ``tol``: ``'dantzig'`` -> ``'lemke'`` (standard LCP: friction split into x+ and x- with a
-slack per side, Lemke's complementary pivoting with an artificial variable, lexicographic ratio
-test, ray termination) -> ``'pgs'`` (projected Gauss-Seidel, bounds from the current normals) ->
-``'frictionless'`` (friction x = 0, normal rows alone by Dantzig, else PGS). A problem whose
-normal rows all have b >= 0 is answered by x = 0 (``'trivial'``) without running any of them.
-Every candidate is checked with ``residual`` (within ``tol``) and with the same measure on the
-velocity scale of b alone (``S = max|b|``, not grown by the candidate's own ``max|A| max|x|``;
-within ``sqrt(tol)``): the round-off of an exact answer to an ill-conditioned problem passes,
-but where A is singular (a wedged part, redundant corners) a squeeze along its null space does
-not, which Lemke has answered with 2.4e9 N s, a residual of 1e-14 and 0.035 m/s of velocity
-error (3 on b's scale). A non-finite or inaccurate candidate counts as a failure (``fallbacks``
-+= 1, the reason goes to ``message``). If every method fails, the finite candidate with the
-smallest residual on b's scale is returned with ``converged=False``; a result reports the
-scale-free ``residual``. ``solve`` never
-raises for well-formed input (``FrictionalLCP`` validates it), never loops without bound and
-never returns NaN or inf.
+``solve`` runs the methods in order and returns the first candidate whose ``residual`` is within
+``tol``: ``'dantzig'`` -> ``'lemke'`` (standard LCP: friction split into x+ and x- with a slack per
+side, Lemke's complementary pivoting with an artificial variable, lexicographic ratio test, ray
+termination) -> ``'pgs'`` (projected Gauss-Seidel, bounds from the current normals) ->
+``'frictionless'`` (friction x = 0, normal rows alone by Dantzig, else PGS). A problem whose normal
+rows all have b >= 0 is answered by x = 0 (``'trivial'``) without running any of them. Every
+candidate is checked with ``residual`` (within ``tol``) and with the same measure on the velocity
+scale of b alone (``S = max|b|``, not grown by the candidate's own ``max|A| max|x|``; within
+``sqrt(tol)``): the round-off of an exact answer to an ill-conditioned problem passes, but where A
+is singular (a wedged part, redundant corners) a squeeze along its null space does not, which Lemke
+has answered with 2.4e9 N s, a residual of 1e-14 and 0.035 m/s of velocity error (3 on b's scale).
+A non-finite or inaccurate candidate counts as a failure (``fallbacks`` += 1, the reason goes to
+``message``). If every method fails, the finite candidate with the smallest residual on b's scale
+is returned with ``converged=False``; a result reports the scale-free ``residual``. ``solve`` never
+raises for well-formed input (``FrictionalLCP`` validates it), never loops without bound and never
+returns NaN or inf.
 
 Guarantees and limits: frictionless PSD problems (Delassus matrices, singular or not) are what
 Baraff's method is proven for; with friction the solution may not exist or not be unique and
