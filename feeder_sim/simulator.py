@@ -513,7 +513,7 @@ class Simulator:
         bodies = self._now()
         bodies[index] = replace(bodies[index], pose=np.asarray(pose, float),
                                 velocity=np.asarray(velocity, float))
-        self._rebuild(bodies, list(range(self.world.n)))
+        self._rebuild(bodies, list(range(self.world.n)), given={index})
 
     def _part_index(self, name: str) -> int:
         names = self.world.names
@@ -535,18 +535,22 @@ class Simulator:
                                 velocity=np.array([*self.state.velocity[i], self.state.omega[i]]))
         return bodies
 
-    def _without_lost(self, bodies: list, old_index: list[int | None]) -> tuple[list, list]:
+    def _without_lost(self, bodies: list, old_index: list[int | None],
+                      given: set[int]) -> tuple[list, list]:
         """``bodies`` without the parts that left the world (farther than ``MAX_LENGTH_M`` or
         faster than ``MAX_SPEED_MPS`` / ``MAX_SPIN_RAD_S``, or not finite: a part that fell off
         a track with nothing below it), which a scene cannot hold: each is taken away, listed
-        in ``lost_parts`` (time, name), logged, and counted as ``lost`` by the feed."""
+        in ``lost_parts`` (time, name), logged, and counted as ``lost`` by the feed. New
+        parts and the bodies at the positions ``given`` carry the caller's numbers: those
+        are checked as a scene's, never taken away."""
         def inside(body) -> bool:
             p, v = body.pose, body.velocity
             return bool(np.all(np.abs(p[:2]) <= MAX_LENGTH_M)
                         and np.all(np.abs(v[:2]) <= MAX_SPEED_MPS)
                         and abs(v[2]) <= MAX_SPIN_RAD_S)
 
-        keep = [k for k, body in enumerate(bodies) if body.type != 'dynamic' or inside(body)]
+        keep = [k for k, body in enumerate(bodies)
+                if body.type != 'dynamic' or old_index[k] is None or k in given or inside(body)]
         if len(keep) == len(bodies) or not keep:
             return bodies, old_index
         for k in sorted(set(range(len(bodies))) - set(keep)):
@@ -560,11 +564,13 @@ class Simulator:
                         np.array2string(bodies[k].velocity[:2], precision=4))
         return [bodies[k] for k in keep], [old_index[k] for k in keep]
 
-    def _rebuild(self, bodies: list, old_index: list[int | None]) -> None:
-        """A world of ``bodies`` (body k was body ``old_index[k]``, None: new) at the current
-        time: validated as a scene, drives carried over (with the commands they received),
-        the stepper started afresh; contacts not yet taken are dropped."""
-        bodies, old_index = self._without_lost(bodies, old_index)
+    def _rebuild(self, bodies: list, old_index: list[int | None],
+                 given: set[int] = frozenset()) -> None:
+        """A world of ``bodies`` (body k was body ``old_index[k]``, None: new; the bodies at
+        the positions ``given`` as the caller set them) at the current time: validated as a
+        scene, drives carried over (with the commands they received), the stepper started
+        afresh; contacts not yet taken are dropped."""
+        bodies, old_index = self._without_lost(bodies, old_index, given)
         # checked as a scene file, without the sources and sinks (their templates may have
         # left: the feed keeps its own copies)
         data = scene_to_dict(replace(self.scene, bodies=tuple(bodies), sources=(), sinks=()))

@@ -152,3 +152,7 @@ def test_a_part_that_left_the_world_is_taken_away_not_the_run(caplog):
     assert abs(turned) <= math.pi
     assert math.cos(turned) == pytest.approx(math.cos(angle_before), abs=1e-9)
     assert math.sin(turned) == pytest.approx(math.sin(angle_before), abs=1e-9)
+    # numbers a caller gives are checked as a scene's, not taken for a lost part
+    with pytest.raises(SceneError, match='pose'):
+        sim.set_part_pose('drop_1', [0.0, -2.0e4, 0.0])
+    assert [sim.world.names[i] for i in sim.part_indices] == ['drop_1', 'drop_2']
