@@ -22,14 +22,12 @@ from feeder_sim.contact.dynamics import SolverStats
 from feeder_sim.model.scene import (
     load_scene,
     MAX_ANGLE_RAD,
-    MAX_LENGTH_M,
-    MAX_SPEED_MPS,
-    MAX_SPIN_RAD_S,
     override_solver,
     parse_scene,
     Scene,
     scene_to_dict,
     SceneError,
+    within_bounds,
 )
 from feeder_sim.model.world import State, World
 from feeder_sim.stepping import StepContacts, STEPPERS
@@ -537,20 +535,14 @@ class Simulator:
 
     def _without_lost(self, bodies: list, old_index: list[int | None],
                       given: set[int]) -> tuple[list, list]:
-        """``bodies`` without the parts that left the world (farther than ``MAX_LENGTH_M`` or
-        faster than ``MAX_SPEED_MPS`` / ``MAX_SPIN_RAD_S``, or not finite: a part that fell off
-        a track with nothing below it), which a scene cannot hold: each is taken away, listed
-        in ``lost_parts`` (time, name), logged, and counted as ``lost`` by the feed. New
-        parts and the bodies at the positions ``given`` carry the caller's numbers: those
-        are checked as a scene's, never taken away."""
-        def inside(body) -> bool:
-            p, v = body.pose, body.velocity
-            return bool(np.all(np.abs(p[:2]) <= MAX_LENGTH_M)
-                        and np.all(np.abs(v[:2]) <= MAX_SPEED_MPS)
-                        and abs(v[2]) <= MAX_SPIN_RAD_S)
-
+        """``bodies`` without the parts that left the world (past the bounds a scene can hold,
+        ``scene.within_bounds``, or not finite: a part that fell off a track with nothing
+        below it): each is taken away, listed in ``lost_parts`` (time, name), logged, and
+        counted as ``lost`` by the feed. New parts and the bodies at the positions ``given``
+        carry the caller's numbers: those are checked as a scene's, never taken away."""
         keep = [k for k, body in enumerate(bodies)
-                if body.type != 'dynamic' or old_index[k] is None or k in given or inside(body)]
+                if body.type != 'dynamic' or old_index[k] is None or k in given
+                or within_bounds(body.pose, body.velocity)]
         if len(keep) == len(bodies) or not keep:
             return bodies, old_index
         for k in sorted(set(range(len(bodies))) - set(keep)):

@@ -36,6 +36,7 @@ from feeder_sim.model.vibration import drive_value_problem
 __all__ = [
     'BODY_TYPES', 'METHODS', 'BodySpec', 'Scene', 'SceneError', 'SolverSpec', 'Vibration',
     'load_scene', 'OutcomeSpec', 'parse_scene', 'scene_dirs', 'scene_to_dict', 'shipped_scenes',
+    'within_bounds',
 ]
 
 METHODS = ('event_driven', 'time_stepping', 'impulse_based')
@@ -49,7 +50,18 @@ MAX_ANGLE_RAD = 1e3          # |pose angle|: beyond it sin/cos lose the part's o
 MAX_SPEED_MPS = 1e3          # |initial velocity component|
 MAX_SPIN_RAD_S = 1e5         # |initial angular velocity|
 MAX_GRAVITY_MPS2 = 1e4       # |gravity component|, about 1000 g
+POSE_BOUNDS = (MAX_LENGTH_M, MAX_LENGTH_M, MAX_ANGLE_RAD)        # |x|, |y|, |theta| of a pose
+VELOCITY_BOUNDS = (MAX_SPEED_MPS, MAX_SPEED_MPS, MAX_SPIN_RAD_S)  # |vx|, |vy|, |omega|
 MIN_TIME_STEP_S = 1e-7       # below it a simulated second costs over 1e7 steps
+
+
+def within_bounds(pose: np.ndarray, velocity: np.ndarray) -> bool:
+    """Whether a body at ``pose`` moving at ``velocity`` is one a scene can hold (the bounds
+    its ``pose`` and ``velocity`` fields are checked against; NaN is not)."""
+    return bool(np.all(np.abs(pose) <= POSE_BOUNDS)
+                and np.all(np.abs(velocity) <= VELOCITY_BOUNDS))
+
+
 # What the loader reads: checking a polygon costs O(n^2) time and memory (100 MB, 1 s at 1000
 # vertices); a scene file of thousands of parts is well under a megabyte.
 MAX_POLYGON_VERTICES = 1000
@@ -630,11 +642,10 @@ _BODY = {
     'type': _Field(lambda v, p: _choice(v, p, BODY_TYPES), 'one of ' + ', '.join(BODY_TYPES)),
     'polygon': _Field(_polygon, 'a list of [x, y] vertices (m)', None),
     'polygons': _Field(_pieces, 'a list of convex pieces', None),
-    'pose': _Field(lambda v, p: _vec(v, p, 3, '[x, y, theta] (m, m, rad)',
-                                     (MAX_LENGTH_M, MAX_LENGTH_M, MAX_ANGLE_RAD)),
+    'pose': _Field(lambda v, p: _vec(v, p, 3, '[x, y, theta] (m, m, rad)', POSE_BOUNDS),
                    '[x, y, theta] (m, m, rad)'),
     'velocity': _Field(lambda v, p: _vec(v, p, 3, '[vx, vy, omega] (m/s, m/s, rad/s)',
-                                         (MAX_SPEED_MPS, MAX_SPEED_MPS, MAX_SPIN_RAD_S)),
+                                         VELOCITY_BOUNDS),
                        '[vx, vy, omega] (m/s, m/s, rad/s)', np.zeros(3)),
     'mass': _Field(_num(MIN_MASS_KG, MAX_MASS_KG, unit='kg',
                         hint='outside it inverse masses and mass ratios lose the physics'),
