@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from feeder_sim.contact.dynamics import SolverStats
-from feeder_sim.model.builders import build, conveyor
+from feeder_sim.model.builders import box, build, conveyor
+from feeder_sim.model.builders import scene_dict as named_scene
 from feeder_sim.model.scene import load_scene
 from feeder_sim.model.world import World
 from feeder_sim.reports.pointmass import Conveyor, mean_speed
@@ -303,6 +304,31 @@ def test_paper_fig_8_impulse_based_feeds_like_event_driven(name):
     moved_ed = sim.track_coordinates()[0][0] - e0
     assert abs(moved_ed) > 0.1
     assert moved == pytest.approx(moved_ed, rel=0.03)
+
+
+def test_a_box_wedged_between_two_walls_keeps_the_clock_moving():
+    # A 20 mm box between walls 20 mm apart: each wall's micro-collision sends it at the bounce
+    # speed into the other, so the sequential sweeps never clear and hit their cap at every
+    # instant. The approach they leave may sink one more penetration band per step; held at
+    # its floor instead, every step shrank to h_floor and a 20 ms advance never returned.
+    # Measured: 0.2 s in 0.2 s of wall, 18 000 capped instants, deepest sink 16 nm.
+    material = {'mu_static': 0.5, 'mu_dynamic': 0.5, 'restitution': 0.0}
+
+    def wall(x0, x1, y1):
+        return {'type': 'static', 'pose': [0.0, 0.0, 0.0], **material,
+                'polygon': [[x0, y1 - 0.03], [x1, y1 - 0.03], [x1, y1], [x0, y1]]}
+
+    part = {'name': 'part', 'type': 'dynamic', 'polygon': box(0.01, 0.005), 'mass': 0.01,
+            'pose': [0.0, 0.015, 0.0], **material}
+    sim = Simulator(build(named_scene('wedged', [
+        {'name': 'floor', **wall(-0.05, 0.05, 0.0)}, {'name': 'left', **wall(-0.03, -0.01, 0.03)},
+        {'name': 'right', **wall(0.01, 0.03, 0.03)}, part], 'impulse_based', 1e-3)))
+    sim.advance(0.2)
+    assert sim.t == pytest.approx(0.2, abs=1e-12)
+    # it falls to the floor between the walls and rests there, centred
+    assert sim.state.position[-1] == pytest.approx([0.0, 0.005], abs=1e-7)
+    assert sim.stats.max_penetration_m < 5 * ImpulseSettings().envelope_m
+    assert sim.stats.fallbacks > 0 and any('sweeps hit the cap' in m for m in sim.stats.messages)
 
 
 def test_reset_and_restitution_laws_run():

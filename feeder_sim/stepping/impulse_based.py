@@ -16,11 +16,16 @@ Sequential multi-point collisions
 ---------------------------------
 Contacts are the active corners of every body against every convex piece of other bodies,
 with the gap of a corner = its largest signed distance from the piece's (non-internal) edge
-lines and the normal of that edge (the least-penetrated face). At an instant, the contacts
+lines and the normal of that edge (the least-penetrated face); within the envelope, only
+among the faces the corner can touch (neither of its sides points into the face, as in
+``collision.find_contacts``), so a corner meeting a corner takes the face it lies on, not
+the end face beside it that would stop every slide along it. At an instant, the contacts
 within the envelope are swept in order of most negative ``u_N`` (ties: lower candidate index),
 one collision each, re-reading each contact's velocity just before it is processed; sweeps
 repeat until no contact approaches. ``max_sweeps`` caps them; hitting the cap is counted in
-``stats.fallbacks`` (with a message) and the leftover approach is met at the next step.
+``stats.fallbacks`` (with a message) and the leftover approach is met at the next step, which
+may sink that contact one more ``penetration_m`` (a jam the sweeps never clear, such as a
+part wedged between two walls, must not hold the clock).
 
 Micro-collisions
 ----------------
@@ -42,12 +47,12 @@ Free flight is exact (ballistic bodies, drives from their sinusoids), so the ste
 accuracy; it only has to catch every collision inside the envelope. Each step is at most
 ``spec.time_step`` and short enough that no body moves more than a quarter of the candidate
 margin or of the thinnest piece (no tunnelling). After a trial step every candidate's gap must
-stay above its floor ``min(-penetration_m, gap at the step start)`` - penetration never grows;
-otherwise the step is shortened (time of impact) to where the first failing gap, modelled as a
-quadratic in time from its value and rate at the start and its value at the end, comes down to
-the middle of the band ``[-penetration_m, eps]``, and tried again; a model that does not
-shrink the step is replaced by halving. A resting part is therefore caught a quarter envelope
-above the surface, rises ``eps`` and is caught again.
+stay above its floor ``min(-penetration_m, gap at the step start)`` (one band lower for an
+approach left by capped sweeps); otherwise the step is shortened (time of impact) to where
+the first failing gap, modelled as a quadratic in time from its value and rate at the start
+and its value at the end, comes down to the middle of the band ``[-penetration_m, eps]``,
+and tried again; a model that does not shrink the step is replaced by halving. A resting part
+is therefore caught a quarter envelope above the surface, rises ``eps`` and is caught again.
 
 Choices, with their reasons:
 
@@ -104,7 +109,7 @@ import math
 import numpy as np
 
 from feeder_sim._jit import inner, jit
-from feeder_sim.contact.candidates import corner_piece_candidates, world_point
+from feeder_sim.contact.candidates import corner_piece_candidates
 from feeder_sim.contact.collision import Contacts
 from feeder_sim.contact.dynamics import contact_set
 from feeder_sim.contact.routh import (
@@ -161,6 +166,12 @@ class ImpulseSettings:
 
 
 # ------------------------------------------------------------------------ kernel geometry
+# A side of a corner pointing into a face by more than this angle (rad) marks a face the
+# corner cannot touch (another corner's end face). Resting parts and trial steps tilt far
+# less: a step moves no corner more than a quarter candidate margin, 0.025 rad for a
+# 1 cm part; the faces of a vertex-vertex contact meet at tens of degrees.
+_SIDE_ANGLE = 0.25
+_SIN_SIDE_ANGLE = math.sin(_SIDE_ANGLE)
 @jit
 def _poses(t1, h, kind, drive_row, drives, gravity, pos, ang, vel, om, pos1, ang1, vel1, om1):
     """Free flight from t1 - h to t1: ballistic dynamic bodies, driven bodies on their drives."""
@@ -187,21 +198,40 @@ def _poses(t1, h, kind, drive_row, drives, gravity, pos, ang, vel, om, pos1, ang
 
 
 @inner
-def _piece_gap(px, py, pos, ang, body, start, end, verts, normals, internal):
-    """Largest signed distance of a point from a piece's outer edge lines, and that edge."""
-    c, s = math.cos(ang[body]), math.sin(ang[body])
-    best, face = math.inf, -1
+def _corner_gap(pos, ang, a, local, sides, b, start, end, verts, normals, internal, eps):
+    """World point of corner ``local`` of body a, its gap to body b's piece and the face.
+
+    Outside the envelope the gap is the largest signed distance from the piece's outer edge
+    lines (a lower bound of the true distance). Within it, the face is the least-penetrated
+    one the corner can touch: neither of its sides (``sides``, body-frame vectors to its
+    neighbours) may point into the face by more than ``_SIDE_ANGLE`` (the supporting-vertex
+    test of ``collision.find_contacts``). A corner meeting a corner is otherwise taken
+    against the end face beside it, whose normal stops every slide along the other face."""
+    c, s = math.cos(ang[a]), math.sin(ang[a])
+    px = pos[a, 0] + c * local[0] - s * local[1]
+    py = pos[a, 1] + s * local[0] + c * local[1]
+    ux, uy = c * sides[0] - s * sides[1], s * sides[0] + c * sides[1]
+    wx, wy = c * sides[2] - s * sides[3], s * sides[2] + c * sides[3]
+    slack_u = _SIN_SIDE_ANGLE * math.hypot(ux, uy)
+    slack_w = _SIN_SIDE_ANGLE * math.hypot(wx, wy)
+    cb, sb = math.cos(ang[b]), math.sin(ang[b])
+    best, face = -math.inf, -1
+    touch, touch_face = -math.inf, -1
     for j in range(start, end):
         if internal[j]:
             continue
-        qx = pos[body, 0] + c * verts[j, 0] - s * verts[j, 1]
-        qy = pos[body, 1] + s * verts[j, 0] + c * verts[j, 1]
-        nx = c * normals[j, 0] - s * normals[j, 1]
-        ny = s * normals[j, 0] + c * normals[j, 1]
+        qx = pos[b, 0] + cb * verts[j, 0] - sb * verts[j, 1]
+        qy = pos[b, 1] + sb * verts[j, 0] + cb * verts[j, 1]
+        nx = cb * normals[j, 0] - sb * normals[j, 1]
+        ny = sb * normals[j, 0] + cb * normals[j, 1]
         d = nx * (px - qx) + ny * (py - qy)
         if face < 0 or d > best:
             best, face = d, j
-    return best, face
+        if (d > touch and ux * nx + uy * ny >= -slack_u and wx * nx + wy * ny >= -slack_w):
+            touch, touch_face = d, j
+    if best <= eps and touch_face >= 0:
+        return px, py, touch, touch_face
+    return px, py, best, face
 
 
 @inner
@@ -227,10 +257,11 @@ def _gap_rate(pos, ang, vel, om, a, b, px, py, nx, ny):
 
 # ------------------------------------------------------------------------ kernel: collisions
 @inner
-def _resolve(t, pos, ang, vel, om, inv_mass, inv_inertia, cv_body, cv_local, cp_body, cp_start,
-             cp_end, c_mu_s, c_mu_d, c_e, verts, normals, internal, eps, v_sep, micro_speed,
-             friction_on, law, max_sweeps, acc_n, acc_t, acc_geo, counters, fout):
-    """Sequential collisions of every approaching contact within the envelope at time t."""
+def _resolve(t, pos, ang, vel, om, inv_mass, inv_inertia, cv_body, cv_local, cv_sides, cp_body,
+             cp_start, cp_end, c_mu_s, c_mu_d, c_e, verts, normals, internal, eps, v_sep,
+             micro_speed, friction_on, law, max_sweeps, acc_n, acc_t, acc_geo, counters, fout):
+    """Sequential collisions of every approaching contact within the envelope at time t;
+    returns whether the sweeps hit their cap (some contact may still approach)."""
     nc = cv_body.shape[0]
     idx = np.empty(nc, np.int64)
     geo = np.empty((nc, 9))     # rax, ray, rbx, rby, nx, ny, ktt, ktn, knn
@@ -238,9 +269,8 @@ def _resolve(t, pos, ang, vel, om, inv_mass, inv_inertia, cv_body, cv_local, cp_
     m = 0
     for c in range(nc):
         a, b = cv_body[c], cp_body[c]
-        px, py = world_point(pos, ang, a, cv_local[c])
-        gap, face = _piece_gap(px, py, pos, ang, b, cp_start[c], cp_end[c], verts, normals,
-                               internal)
+        px, py, gap, face = _corner_gap(pos, ang, a, cv_local[c], cv_sides[c], b, cp_start[c],
+                                        cp_end[c], verts, normals, internal, eps)
         if face < 0 or gap > eps:
             continue
         if -gap > fout[_F_MAX_PEN]:
@@ -268,7 +298,7 @@ def _resolve(t, pos, ang, vel, om, inv_mass, inv_inertia, cv_body, cv_local, cp_
         acc_geo[c, k, 4] = gap
         m += 1
     if m == 0:
-        return
+        return False
     un_now = np.empty(m)
     sweeps = 0
     while True:
@@ -277,11 +307,11 @@ def _resolve(t, pos, ang, vel, om, inv_mass, inv_inertia, cv_body, cv_local, cp_
             _, un_now[k] = _relative(vel, om, a, b, geo[k, 0], geo[k, 1], geo[k, 2], geo[k, 3],
                                      geo[k, 4], geo[k, 5])
         if un_now.min() >= 0.0:
-            break
+            return False
         if sweeps >= max_sweeps:
             counters[_C_SWEEP_CAP] += 1
             fout[_F_CAP_T] = t
-            break
+            return True
         sweeps += 1
         counters[_C_SWEEPS] += 1
         counters[_C_MOST_SWEEPS] = max(counters[_C_MOST_SWEEPS], sweeps)
@@ -364,10 +394,10 @@ def _reach_step(h, speed, g, reach, h_min):
 
 @jit
 def _run(t, t_stop, pos, ang, vel, om, kind, drive_row, drives, drive_speed, gravity,
-         inv_mass, inv_inertia, radius, cv_body, cv_local, cp_body, cp_start, cp_end, c_mu_s,
-         c_mu_d, c_e, verts, normals, internal, anchor_pos, anchor_ang, margin, width, h_max,
-         eps, eps_pen, v_sep, micro_speed, friction_on, law, max_sweeps, max_toi, h_min, acc_n,
-         acc_t, acc_geo, counters, fout):
+         inv_mass, inv_inertia, radius, cv_body, cv_local, cv_sides, cp_body, cp_start, cp_end,
+         c_mu_s, c_mu_d, c_e, verts, normals, internal, anchor_pos, anchor_ang, margin, width,
+         h_max, eps, eps_pen, v_sep, micro_speed, friction_on, law, max_sweeps, max_toi, h_min,
+         acc_n, acc_t, acc_geo, counters, fout):
     """Collisions and free flight from t to t_stop (state arrays in place); returns
     (t, _DONE) or (t, _REFRESH) when a dynamic body has moved half the candidate margin."""
     n = kind.shape[0]
@@ -380,7 +410,8 @@ def _run(t, t_stop, pos, ang, vel, om, kind, drive_row, drives, drive_speed, gra
     # a step must still move the clock at late times
     h_floor = max(h_min, 4.0 * np.finfo(np.float64).eps * abs(t_stop))
     while True:
-        _resolve(t, pos, ang, vel, om, inv_mass, inv_inertia, cv_body, cv_local, cp_body,
+        capped = _resolve(t, pos, ang, vel, om, inv_mass, inv_inertia, cv_body, cv_local,
+                          cv_sides, cp_body,
                  cp_start, cp_end, c_mu_s, c_mu_d, c_e, verts, normals, internal, eps, v_sep,
                  micro_speed, friction_on, law, max_sweeps, acc_n, acc_t, acc_geo, counters,
                  fout)
@@ -403,9 +434,9 @@ def _run(t, t_stop, pos, ang, vel, om, kind, drive_row, drives, drive_speed, gra
         h = _reach_step(h, speed + drive_speed, g, 0.25 * width, h_floor)
         for c in range(nc):
             a, b = cv_body[c], cp_body[c]
-            px, py = world_point(pos, ang, a, cv_local[c])
-            gap, face = _piece_gap(px, py, pos, ang, b, cp_start[c], cp_end[c], verts, normals,
-                                   internal)
+            px, py, gap, face = _corner_gap(pos, ang, a, cv_local[c], cv_sides[c], b,
+                                            cp_start[c], cp_end[c], verts, normals, internal,
+                                            eps)
             g0[c] = gap
             if face < 0:
                 u0[c] = 0.0
@@ -414,15 +445,20 @@ def _run(t, t_stop, pos, ang, vel, om, kind, drive_row, drives, drive_speed, gra
             nx, ny = _face_frame(ang, b, normals, face)
             u0[c] = _gap_rate(pos, ang, vel, om, a, b, px, py, nx, ny)
             floor[c] = min(-eps_pen, gap)
+            if capped and u0[c] < 0.0 and gap <= eps:
+                # An approach the capped sweeps left may sink the gap one more band: holding
+                # it at its floor, a jam the sweeps never clear shrinks every step to h_floor
+                # and the clock stalls; unbounded, a part sinks through while the cap is hit.
+                floor[c] -= eps_pen
         for it in range(max_toi):
             _poses(t + h, h, kind, drive_row, drives, gravity, pos, ang, vel, om, pos1, ang1,
                    vel1, om1)
             h_new = h
             ok = True
             for c in range(nc):
-                px, py = world_point(pos1, ang1, cv_body[c], cv_local[c])
-                gh, face = _piece_gap(px, py, pos1, ang1, cp_body[c], cp_start[c], cp_end[c],
-                                      verts, normals, internal)
+                _, _, gh, face = _corner_gap(pos1, ang1, cv_body[c], cv_local[c], cv_sides[c],
+                                             cp_body[c], cp_start[c], cp_end[c], verts,
+                                             normals, internal, eps)
                 if face >= 0 and gh < floor[c]:
                     ok = False
                     h_new = min(h_new, _toi(g0[c], u0[c], gh, h, center, floor[c]))
@@ -447,9 +483,9 @@ def _run(t, t_stop, pos, ang, vel, om, kind, drive_row, drives, drive_speed, gra
         om[:] = om1
         counters[_C_STEPS] += 1
         for c in range(nc):
-            px, py = world_point(pos, ang, cv_body[c], cv_local[c])
-            gap, face = _piece_gap(px, py, pos, ang, cp_body[c], cp_start[c], cp_end[c],
-                                   verts, normals, internal)
+            _, _, gap, face = _corner_gap(pos, ang, cv_body[c], cv_local[c], cv_sides[c],
+                                          cp_body[c], cp_start[c], cp_end[c], verts, normals,
+                                          internal, eps)
             if face >= 0 and -gap > fout[_F_MAX_PEN]:
                 fout[_F_MAX_PEN] = -gap
 
@@ -532,7 +568,8 @@ class ImpulseBased(StepperBase):
         vb, ps, pb = self._vertex_body, self._piece_start, self._piece_body
         if len(pb) < 2:
             none = np.zeros(0, np.int64)
-            arrays = (none, np.zeros((0, 2)), none, none, none, *(np.zeros(0),) * 3)
+            arrays = (none, np.zeros((0, 2)), np.zeros((0, 4)), none, none, none,
+                      *(np.zeros(0),) * 3)
             return _Candidates(none, none, arrays, state.position.copy(), state.angle.copy(),
                                stroke.copy())
         margin = self.margin_m
@@ -547,7 +584,10 @@ class ImpulseBased(StepperBase):
         vertex, piece = vertex[inside], piece[inside]
         a, b = vb[vertex], pb[piece]
         mu_s, mu_d, e = (m[a, b] for m in self._materials)
-        arrays = (a, np.ascontiguousarray(v[vertex]), b, ps[piece], ps[piece + 1],
+        topo = self.world.shapes.derived
+        sides = np.concatenate([v[topo.prev_vertex[vertex]] - v[vertex],
+                                v[topo.next_vertex[vertex]] - v[vertex]], axis=1)
+        arrays = (a, np.ascontiguousarray(v[vertex]), sides, b, ps[piece], ps[piece + 1],
                   np.ascontiguousarray(mu_s), np.ascontiguousarray(mu_d),
                   np.ascontiguousarray(e))
         return _Candidates(vertex, piece, arrays, state.position.copy(), state.angle.copy(),
