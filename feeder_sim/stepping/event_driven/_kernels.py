@@ -920,8 +920,10 @@ def _bodies_at(t, y, dyn, kind, index, pos_fixed, ang_fixed, drives, gravity, po
 
 
 @inner
-def _mode_rhs(t, y, spec, pos, ang, vel, om, acc, dydt, g, f):
-    """Time derivative of y under the held mode, its event functions and contact forces.
+def _mode_rhs(t, y, spec, pos, ang, vel, om, acc, dydt, g, f, events):
+    """Time derivative of y under the held mode, its contact forces and, with ``events``,
+    its event functions (a Dormand-Prince step needs them at its end only: the candidates'
+    gaps cost more than the rest of the right-hand side in a scene of many pieces).
 
     The same equations as ``EventDriven._rhs`` and ``_event_values``: forces are the
     least-squares solution of the held mode's equations (pressing contacts have zero normal
@@ -991,6 +993,8 @@ def _mode_rhs(t, y, spec, pos, ang, vel, om, acc, dydt, g, f):
             dydt[3 * nd + 2 * q] += dv[3 * q]
             dydt[3 * nd + 2 * q + 1] += dv[3 * q + 1]
             dydt[5 * nd + q] += dv[3 * q + 2]
+    if not events:
+        return
     j = _force_events(f, k, mu_s, group, n_groups, force_scale, g)
     for i in range(k):
         if friction[i] == SLIDE:
@@ -1007,7 +1011,7 @@ def mode_rhs(t, y, spec, n_events, pos, ang, vel, om):
     dydt = np.empty(y.shape[0])
     g = np.empty(n_events)
     f = np.zeros(2 * spec.contacts.body_a.shape[0])
-    _mode_rhs(t, y, spec, pos, ang, vel, om, acc, dydt, g, f)
+    _mode_rhs(t, y, spec, pos, ang, vel, om, acc, dydt, g, f, True)
     return dydt, g, f
 
 
@@ -1028,7 +1032,7 @@ def dopri_step(t, y, h, k0, spec, n_events, tol_scale, pos, ang, vel, om):
             for j in range(i):
                 s += DP_A[i, j] * ks[j, q]
             yi[q] = y[q] + h * s
-        _mode_rhs(t + DP_C[i] * h, yi, spec, pos, ang, vel, om, acc, ks[i], g, f)
+        _mode_rhs(t + DP_C[i] * h, yi, spec, pos, ang, vel, om, acc, ks[i], g, f, i == 6)
     err = 0.0
     for q in range(n):
         e = 0.0
