@@ -21,8 +21,8 @@ from feeder_sim.simulator import Simulator
 DURATION_S = 4.5      # the sixth cup leaves at about 4.1 s with the good hook
 
 
-def _outcomes(scene, duration_s=DURATION_S):
-    sim = Simulator(scene)
+def _outcomes(scene, duration_s=DURATION_S, method=None):
+    sim = Simulator(scene, method=method)
     out = run(sim, duration_s).summary['outcomes']
     return sim, out
 
@@ -40,8 +40,9 @@ def _inside_the_machine(sim):
 
 
 @pytest.mark.timeout(300)
-def test_good_hook_every_cup_leaves_open_end_up():
-    sim, out = _outcomes('orienter_hook')
+@pytest.mark.parametrize('method', [None, 'event_driven'])
+def test_good_hook_every_cup_leaves_open_end_up(method):
+    sim, out = _outcomes('orienter_hook', method=method)
     assert out['parts_exited'] == 6
     assert out['exit_orientations'] == {'open_end_up': 6, 'open_end_down': 0, 'other': 0}
     # within 20 degrees of upright, whichever way the cup arrived
@@ -51,9 +52,14 @@ def test_good_hook_every_cup_leaves_open_end_up():
     _inside_the_machine(sim)
 
 
+# event_driven as well as the scene's own time_stepping: a cup tipping over the track's end
+# against the next one makes its mode chatter (two rims trading which corner lies on whose
+# edge, events ~30 ns apart); recognised again after a few events and stepped past further
+# each time, it costs ~1 100 events from 1.05 to 1.2 s where it cost ~25 000 (minutes of wall)
 @pytest.mark.timeout(300)
-def test_short_hook_catches_a_cup_and_the_queue_jams():
-    sim, out = _outcomes('orienter_hook_short')
+@pytest.mark.parametrize('method', [None, 'event_driven'])
+def test_short_hook_catches_a_cup_and_the_queue_jams(method):
+    sim, out = _outcomes('orienter_hook_short', method=method)
     assert out['jams'] >= 1 and out['parts_exited'] < 6
     first = min((p for p in out['parts'] if p['jam_time_s'] is not None),
                 key=lambda p: p['jam_time_s'])

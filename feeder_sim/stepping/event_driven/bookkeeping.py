@@ -47,6 +47,11 @@ class EventSettings:
     max_events_at_one_time: int = 50
     cascade_window_s: float = 1e-6   # events closer than this in time count as one cascade
     max_give_way_s: float = 1e-5     # longest step taken past a persisting cascade
+    # a cascade this soon (s) after the last one is the same chatter: it is recognised after
+    # max_events_again dense events and its step past keeps growing (quiet steps between
+    # bursts spaced by microseconds do not reset it)
+    cascade_memory_s: float = 1e-3
+    max_events_again: int = 5
     # One dynamic body: follow its closed-form phases through the events its own contacts
     # resolve in compiled code (:mod:`._chain`); False takes each event through the general
     # path (the same answers to round-off, several times slower).

@@ -118,6 +118,7 @@ class EventDriven(StepperBase):
         self._mode: Mode | None = None
         self._h = spec.time_step
         self._pending: list[StepContacts] = []
+        self._give_way_s, self._last_cascade_t = GIVE_WAY_S, -math.inf
 
     def reset(self) -> None:
         self._mode = None
@@ -125,6 +126,7 @@ class EventDriven(StepperBase):
         self.drive_models.clear()
         self._h = self.spec.time_step
         self._pending = []
+        self._give_way_s, self._last_cascade_t = GIVE_WAY_S, -math.inf
 
     def h_max(self) -> float:
         """The largest step (s): the scene's, at most a sixteenth of every drive's period."""
@@ -134,7 +136,6 @@ class EventDriven(StepperBase):
         """Integrate ``state`` in place to ``t_end``; returns the contact impulses transmitted."""
         scratch = state.copy()
         events_here, last_event_t = 0, -math.inf
-        give_way_s = GIVE_WAY_S
         reported = len(self._pending)
         while state.t < t_end - 1e-15:
             if self._mode is None:
@@ -156,15 +157,21 @@ class EventDriven(StepperBase):
                 dense = state.t - last_event_t < self.settings.cascade_window_s
                 events_here = events_here + 1 if dense else 0
                 last_event_t = state.t
-                if events_here > self.settings.max_events_at_one_time:
+                again = state.t - self._last_cascade_t <= self.settings.cascade_memory_s
+                if events_here > (self.settings.max_events_again if again else
+                                  self.settings.max_events_at_one_time):
                     # A cascade: events at one instant, or a mode that chatters between two
                     # choices every few nanoseconds (a contact at its friction bound touched by
-                    # a corner). Step past it, twice as far each time it persists.
-                    self._give_way(state, scratch, give_way_s)
-                    give_way_s = min(2.0 * give_way_s, self.settings.max_give_way_s)
+                    # a corner, two corners trading which lies on whose edge). Step past it,
+                    # twice as far each time it comes back within the memory.
+                    if not again:
+                        self._give_way_s = GIVE_WAY_S
+                    self._give_way(state, scratch, self._give_way_s)
+                    self._give_way_s = min(2.0 * self._give_way_s,
+                                           self.settings.max_give_way_s)
+                    self._last_cascade_t = state.t
                     events_here = 0
                 continue
-            give_way_s = GIVE_WAY_S
             if state.t >= t_stop - 1e-15 and t_stop < t_end:
                 self._mode = None   # the drive's acceleration has a kink here
         out, self._pending = self._pending, []
