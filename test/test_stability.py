@@ -93,13 +93,16 @@ def test_impulse_based_passes_or_is_explained_everywhere():
 
 @pytest.mark.timeout(120)
 def test_report_flags_a_design_failure_without_failing_the_suite(tmp_path):
-    # the 1e2 stack on the impulse-based method misses its drift bound by design (~2 um/s)
+    # the 1e2 stack on the impulse-based method misses its bounds by design: its parts
+    # jitter with the micro-collision hops (measured over 1 s: drift 0.85 um, rotation
+    # 1.6 urad, energy gain 1.9e-6 of E_ref)
     report = S.run_stability(tmp_path, methods=(IB,), cases=['stack_mass_ratio_1e2'],
                              progress=None)
     cell = report['cells'][0]
     assert not cell['passed'] and cell['status'] == 'FAILS BY DESIGN'
     assert cell['expected_to_fail'] and 'micro-collision' in cell['why']
-    assert cell['criteria']['max_drift_m']['value'] > 1e-6
+    failed = {name for name, c in cell['criteria'].items() if not c['passed']}
+    assert failed and failed <= {'max_drift_m', 'max_rotation_rad', 'energy_gain'}, failed
     assert report['passed']
 
 
