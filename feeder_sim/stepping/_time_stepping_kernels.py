@@ -8,10 +8,11 @@ runs every shipped scene through this kernel against states recorded from the Py
 
 A step the kernel does not take itself is handed back before anything of it is written:
 ``advance`` returns ``REFERENCE`` and ``TimeStepper`` takes that one step in Python, then
-calls the kernel again. That is a step where a contact has restitution (the approach-speed
-memory of speculative rows lives in Python), where the compiled Dantzig misses ``lcp_tol``
-(the reference's fallback ladder solves it, counted in ``stats.fallbacks`` there), or where
-a step's contacts would overflow the report buffers (``GROW``: they are doubled).
+calls the kernel again. That is a step where the compiled Dantzig misses ``lcp_tol`` (the
+reference's fallback ladder solves it, counted in ``stats.fallbacks`` there), or where a
+step's contacts would overflow the report buffers (``GROW``: they are doubled). Contacts
+with restitution are stepped here too: the velocities a speculative row held back
+(:class:`Approach`) travel from step to step like the warm start.
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ from feeder_sim.contact._collision_kernels import (
     NarrowPhaseTolerances,
 )
 from feeder_sim.contact._island_kernels import (
+    _contact_velocity,
     apply_impulses,
     contact_rows,
     drift,
@@ -142,6 +144,21 @@ class Warm(NamedTuple):
     keys: np.ndarray
     p_n: np.ndarray
     p_t: np.ndarray
+
+
+class Approach(NamedTuple):
+    """``TimeStepper._approach``: the body pairs ``lo[p] < hi[p]`` a speculative row with
+    restitution held back, and their velocities before the first such step, ``vel[p]`` =
+    (vx, vy, omega) of ``lo[p]``, then of ``hi[p]`` (m/s, rad/s)."""
+
+    lo: np.ndarray      # (p,) int64
+    hi: np.ndarray      # (p,) int64
+    vel: np.ndarray     # (p, 6)
+
+
+def no_approach() -> Approach:
+    """An empty :class:`Approach`."""
+    return Approach(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 6)))
 
 
 class Reports(NamedTuple):
@@ -473,10 +490,77 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
 
 
 @inner
-def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, floats, rep, msgs,
-          n_msgs):
-    """One ``TimeStepper.step`` of ``h`` from ``t0``: ``(code, warm)``; the state, the
-    counters and the reports are written only when the step is taken (``DONE``)."""
+def _pair_index(approach, a, b):
+    """Index of the body pair (a, b) in ``approach``, -1 if it is not there."""
+    lo, hi = min(a, b), max(a, b)
+    for p in range(approach.lo.shape[0]):
+        if approach.lo[p] == lo and approach.hi[p] == hi:
+            return p
+    return -1
+
+
+@inner
+def _restore_approach(approach, a, b, normal, r_a, r_b, rest, newton, vel, om, b_n):
+    """``TimeStepper._restore_approach``, in place on ``b_n``: a Newton row (``newton``) of a
+    pair held back before bounces the normal velocity the pair came in with."""
+    for q in range(a.shape[0]):
+        if not newton[q]:
+            continue
+        p = _pair_index(approach, a[q], b[q])
+        if p < 0:
+            continue
+        nx, ny = normal[q, 0], normal[q, 1]
+        v_now = _contact_velocity(q, a[q], b[q], nx, ny, r_a, r_b, vel, om)[0]
+        ja = 0 if a[q] < b[q] else 3
+        jb = 3 - ja
+        pv = approach.vel
+        pax = pv[p, ja] + pv[p, ja + 2] * -r_a[q, 1]
+        pay = pv[p, ja + 1] + pv[p, ja + 2] * r_a[q, 0]
+        pbx = pv[p, jb] + pv[p, jb + 2] * -r_b[q, 1]
+        pby = pv[p, jb + 1] + pv[p, jb + 2] * r_b[q, 0]
+        rx, ry = pax - pbx, pay - pby
+        came_in = rx * nx + ry * ny
+        lowest = came_in if came_in < v_now or came_in != came_in else v_now
+        lowest = lowest if lowest < 0.0 or lowest != lowest else 0.0
+        now = v_now if v_now < 0.0 or v_now != v_now else 0.0
+        b_n[q] = b_n[q] + rest[q] * (lowest - now)
+
+
+@inner
+def _held_back(ar, approach, a, b, held, vel, om):
+    """``TimeStepper._held_back``: the pairs of the ``held`` contacts, each with the
+    velocities ``approach`` kept for it, or the step's starting ones."""
+    m = a.shape[0]
+    lo = empty_i(ar, m)
+    hi = empty_i(ar, m)
+    pv = empty_f2(ar, m, 6)
+    n_pairs = 0
+    for q in range(m):
+        if not held[q]:
+            continue
+        x, y = min(a[q], b[q]), max(a[q], b[q])
+        seen = False
+        for p in range(n_pairs):
+            seen = seen or (lo[p] == x and hi[p] == y)
+        if seen:
+            continue
+        lo[n_pairs], hi[n_pairs] = x, y
+        old = _pair_index(approach, x, y)
+        for j in range(6):
+            if old >= 0:
+                pv[n_pairs, j] = approach.vel[old, j]
+            else:
+                i = x if j < 3 else y
+                pv[n_pairs, j] = vel[i, j % 3] if j % 3 < 2 else om[i]
+        n_pairs += 1
+    return Approach(lo[:n_pairs], hi[:n_pairs], pv[:n_pairs])
+
+
+@inner
+def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approach, ints, floats,
+          rep, msgs, n_msgs):
+    """One ``TimeStepper.step`` of ``h`` from ``t0``: ``(code, warm, approach)``; the state,
+    the counters and the reports are written only when the step is taken (``DONE``)."""
     n = pos.shape[0]
     dynamic, dyn_idx = bodies.dynamic, bodies.dyn_idx
     half = 0.5 * h
@@ -507,7 +591,7 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, 
     vert, edge, gap, param, w, nw, finite = _find_contacts(ar, shapes, mid_pos, mid_ang, dynamic,
                                                            margin, st.narrow)
     if not finite:
-        return REFERENCE, warm
+        return REFERENCE, warm, approach
     k = vert.shape[0]
     if k and margin > base:
         # TimeStepper._within_reach
@@ -563,12 +647,9 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, 
         m = keep.shape[0]
     n_spare = 0
     if m:
-        for q in range(m):
-            if rest[q] > 0.0:
-                return REFERENCE, warm   # the approach memory of bouncing contacts
         rows0, steps0 = rep.counts[0], rep.counts[1]
         if rows0 + m > rep.gap.shape[0] or steps0 + 1 > rep.step_end.shape[0]:
-            return GROW, warm
+            return GROW, warm, approach
         spare = full_b(ar, k, True)
         for q in range(m):
             spare[keep[q]] = False
@@ -617,6 +698,20 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, 
             keys[q] = vert[q] * nv + edge[q]
         p_n = zeros_f(ar, m)
         p_t = zeros_f(ar, m)
+        bouncy = False
+        for q in range(m):
+            bouncy = bouncy or rest[q] > 0.0
+        spec = empty_b(ar, m if bouncy else 0)
+        newton = empty_b(ar, m if bouncy else 0)
+        if bouncy:
+            # speculative rows: neither a pile's nor a Newton row (the kernel's index set)
+            for q in range(m):
+                spec[q] = (not pile[q] and gap[q] > st.touch_m
+                           and gap[q] + 0.5 * h * v_n_free[q] > st.touch_m)
+                newton[q] = not pile[q] and not spec[q] and rest[q] > 0.0
+            if approach.lo.shape[0]:
+                _restore_approach(approach, body_a, body_b, normal, r_a, r_b, rest, newton,
+                                  vel, om, b_n)
         n_isl = starts.shape[0] - 1
         step_ints[I_ISLANDS] += n_isl
         # an island whose normal rows all have b >= 0 is answered by zero impulses
@@ -642,7 +737,7 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, 
                 gather(ar, mu_hi, order), gather(ar, mu_s, order), gather(ar, mu_d, order),
                 gather(ar, keys, order), neg, warm, st, step_ints, step_floats, msgs, step_msgs)
             if not ok_solve:
-                return REFERENCE, warm
+                return REFERENCE, warm, approach
             for q in range(m):
                 p_n[order[q]] = x_n[q]
                 p_t[order[q]] = x_t[q]
@@ -656,10 +751,21 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, 
                     end_om[i] = end_om[i] + dv[i, 2]
         for q in range(m):
             step_ints[I_IMPACTS] += colliding[q] and p_n[q] > 0
+        if bouncy:
+            held = empty_b(ar, m)
+            for q in range(m):
+                held[q] = spec[q] and rest[q] > 0.0 and p_n[q] > 0.0
+            new_approach = _held_back(ar, approach, body_a, body_b, held, vel, om)
+        else:
+            new_approach = Approach(empty_i(ar, 0), empty_i(ar, 0), empty_f2(ar, 0, 6))
         o = _argsort(ar, keys)
         new_warm = Warm(gather(ar, keys, o), gather(ar, p_n, o), gather(ar, p_t, o))
     else:
-        new_warm = warm
+        # carried on unchanged, into this step's arena: the one they live in is reset by the
+        # step after next
+        new_warm = Warm(copy_i(ar, warm.keys), copy_f(ar, warm.p_n), copy_f(ar, warm.p_t))
+        new_approach = Approach(copy_i(ar, approach.lo), copy_i(ar, approach.hi),
+                                copy_f2(ar, approach.vel))
 
     # the second half step
     drift(dyn_idx, mid_pos, mid_ang, end_vel, end_om, half, new_pos, new_ang)
@@ -752,7 +858,7 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, 
                                            x_n, zeros_f(ar, kk), zeros_f(ar, kk))
             for i in range(n_isl):
                 if sel[i] and res[i] > st.lcp_tol:
-                    return REFERENCE, warm
+                    return REFERENCE, warm, approach
             _record_batch(step_ints, step_floats, sel, lens, work, res, sel)
             dv = zeros_f2(ar, n, 3)
             apply_impulses(ar, dv, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o,
@@ -812,19 +918,20 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, 
         rep.counts[0] = r0 + m
         rep.step_end[rep.counts[1]] = r0 + m
         rep.counts[1] += 1
-    return DONE, new_warm
+    return DONE, new_warm, new_approach
 
 
 @jit
-def advance(t, t_end, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints, floats, rep,
-            msgs, n_msgs, arenas):
+def advance(t, t_end, pos, ang, vel, om, bodies, shapes, drives, st, warm, approach, ints,
+            floats, rep, msgs, n_msgs, arenas):
     """``TimeStepper.advance`` from ``t`` to ``t_end`` (s) by ``st.time_step_s``, the last
-    step shortened to land on ``t_end``: ``(code, t, warm)``, where ``code`` is ``DONE`` or
-    why the step at ``t`` is left to the caller (``REFERENCE``, ``GROW``).
+    step shortened to land on ``t_end``: ``(code, t, warm, approach)``, where ``code`` is
+    ``DONE`` or why the step at ``t`` is left to the caller (``REFERENCE``, ``GROW``).
 
     A step's scratch comes from one of the two ``arenas`` (:mod:`feeder_sim._arena`), reset
-    when the step starts; steps alternate between them because the impulses a step leaves
-    for the next one's warm start live in its arena. They leave as ordinary arrays."""
+    when the step starts; steps alternate between them because the impulses (and held-back
+    velocities) a step leaves for the next one live in its arena. They leave as ordinary
+    arrays."""
     h = st.time_step_s
     code = DONE
     n = 0
@@ -834,6 +941,7 @@ def advance(t, t_end, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints,
     pos, ang, vel, om = borrow(pos), borrow(ang), borrow(vel), borrow(om)
     ints, floats, msgs, n_msgs = borrow(ints), borrow(floats), borrow(msgs), borrow(n_msgs)
     warm = Warm(borrow(warm.keys), borrow(warm.p_n), borrow(warm.p_t))
+    approach = Approach(borrow(approach.lo), borrow(approach.hi), borrow(approach.vel))
     bodies = StepBodies(
         borrow(bodies.dynamic), borrow(bodies.dyn_idx), borrow(bodies.driven_idx),
         borrow(bodies.inv_mass), borrow(bodies.inv_inertia), borrow(bodies.radius_m),
@@ -861,10 +969,11 @@ def advance(t, t_end, pos, ang, vel, om, bodies, shapes, drives, st, warm, ints,
         step = min(h, t_end - t)
         ar = scratch[n & 1]
         release(ar, 0)
-        code, warm = _step(ar, step, t, pos, ang, vel, om, bodies, shapes, drives, st, warm,
-                           ints, floats, rep, msgs, n_msgs)
+        code, warm, approach = _step(ar, step, t, pos, ang, vel, om, bodies, shapes, drives,
+                                     st, warm, approach, ints, floats, rep, msgs, n_msgs)
         if code != DONE:
             break
         t = t + step
         n += 1
-    return code, t, Warm(warm.keys.copy(), warm.p_n.copy(), warm.p_t.copy())
+    return (code, t, Warm(warm.keys.copy(), warm.p_n.copy(), warm.p_t.copy()),
+            Approach(approach.lo.copy(), approach.hi.copy(), approach.vel.copy()))

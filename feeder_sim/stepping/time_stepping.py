@@ -67,10 +67,11 @@ Compiled paths and their references
 ``TimeStepper.advance`` runs whole steps in ``_time_stepping_kernels.advance``, many per call,
 with the operations of ``TimeStepper.step`` in the same order: the same bits, frames, counters
 and contact reports (test/test_pile.py, test/test_fingerprint.py). ``step`` stays as the
-reference and takes the steps the kernel hands back: a contact with restitution (the approach
-speeds of speculative rows are kept in Python), a Dantzig answer missing ``lcp_tol`` (the
-reference solves it again through ``lcp.solve``'s ladder and counts the fallback), non-finite
-bounds (its error). ``TimeStepSettings(compiled=False)`` runs the reference alone.
+reference and takes the steps the kernel hands back: a Dantzig answer missing ``lcp_tol``
+(the reference solves it again through ``lcp.solve``'s ladder and counts the fallback),
+non-finite bounds (its error). The velocities speculative rows held back for restitution
+(``_approach``) go into the kernel and come back with the warm start.
+``TimeStepSettings(compiled=False)`` runs the reference alone.
 
 The kernel's steps make no numpy allocation: their scratch arrays come from two arenas
 (``feeder_sim._arena``) sized from the scene's vertex count and doubled when a step needed
@@ -370,7 +371,7 @@ class TimeStepper(StepperBase):
         # A remainder below 1e-9 steps is round-off of a frame length that is a multiple of the
         # step: it costs no extra short step.
         while t_end - state.t > 1e-9 * h:
-            if self.settings.compiled and not self._approach:
+            if self.settings.compiled:
                 code = self._advance_compiled(state, t_end, reports)
                 if code == TK.DONE:
                     break
@@ -394,12 +395,19 @@ class TimeStepper(StepperBase):
         msgs = np.zeros((max(0, 20 - len(stats.messages)), 4))
         n_msgs = np.zeros(1, np.int64)
         warm = TK.Warm(self._warm.keys, self._warm.p_n, self._warm.p_t)
+        held = self._approach
+        approach = TK.no_approach() if not held else TK.Approach(
+            np.array([p[0] for p in held], np.int64), np.array([p[1] for p in held], np.int64),
+            np.array([v.reshape(6) for v in held.values()]))
         bodies, shapes = self._compiled
         settings = self._compiled_settings()
-        code, t, warm = TK.advance(
+        code, t, warm, approach = TK.advance(
             state.t, t_end, state.position, state.angle, state.velocity, state.omega, bodies,
-            shapes, self.world.drive_segments(state.t), settings, warm, ints, floats, rep, msgs,
-            n_msgs, (self._arenas[0].state, self._arenas[1].state))
+            shapes, self.world.drive_segments(state.t), settings, warm, approach, ints, floats,
+            rep, msgs, n_msgs, (self._arenas[0].state, self._arenas[1].state))
+        self._approach = {(lo, hi): v.reshape(2, 3) for lo, hi, v in
+                          zip(approach.lo.tolist(), approach.hi.tolist(), approach.vel,
+                              strict=True)}
         if any(arena.state[SHORT] for arena in self._arenas):
             self._arenas = tuple(new_arena(grown_capacity(a)) for a in self._arenas)
         state.t = t
