@@ -121,37 +121,34 @@ def test_a_part_held_back_by_a_speculative_row_bounces_the_speed_it_came_in_with
     assert abs(sim.world.kinetic_energy(sim.state) / e0 - 0.25) <= 1e-9
 
 
+PLATE_HALF = 0.0005
+
+
+def plates(gap_m: float) -> dict:
+    """Two 1 x 20 mm plates ``gap_m`` apart, 10 m/s each towards the other, e = 0.5, no
+    gravity."""
+    material = {'mu_static': 0.3, 'mu_dynamic': 0.3, 'restitution': 0.5}
+    bodies = [{'name': name, 'type': 'dynamic', 'polygon': box(PLATE_HALF, 0.01), 'mass': 0.01,
+               'pose': [x, 0.0, 0.0], 'velocity': [v, 0.0, 0.0], **material}
+              for name, x, v in (('left', -0.5 * gap_m - PLATE_HALF, 10.0),
+                                 ('right', 0.5 * gap_m + PLATE_HALF, -10.0))]
+    return build(scene_dict('plates', bodies, 'time_stepping', 1e-3, gravity=(0.0, 0.0)))
+
+
 @pytest.mark.parametrize('gap_m', [0.018, 0.025, 0.0265, 0.028, 0.029, 0.045])
 def test_thin_parts_thrown_at_each_other_bounce(gap_m):
     # Two 1 x 20 mm plates, 10 m/s each towards the other: they close 20 mm per 1 ms step,
     # twice as far as either moves. A contact search reaching 1.5 steps of the fastest part's
     # travel missed them from some starting gaps, and they passed through each other. Head
     # on with e = 0.5 each must leave at 5 m/s, never having overlapped beyond the slop.
-    half_w = 0.0005
-    material = {'mu_static': 0.3, 'mu_dynamic': 0.3, 'restitution': 0.5}
-    plates = [{'name': name, 'type': 'dynamic', 'polygon': box(half_w, 0.01), 'mass': 0.01,
-               'pose': [x, 0.0, 0.0], 'velocity': [v, 0.0, 0.0], **material}
-              for name, x, v in (('left', -0.5 * gap_m - half_w, 10.0),
-                                 ('right', 0.5 * gap_m + half_w, -10.0))]
-    sim = Simulator(build(scene_dict('plates', plates, 'time_stepping', 1e-3,
-                                     gravity=(0.0, 0.0))))
+    sim = Simulator(plates(gap_m))
     closest = np.inf
     while sim.t < 0.01 - 1e-12:
         sim.advance(sim.t + 1e-3)
         x = sim.state.position[:, 0]
-        closest = min(closest, x[1] - x[0] - 2 * half_w)
+        closest = min(closest, x[1] - x[0] - 2 * PLATE_HALF)
     assert closest >= -1e-9
     assert np.allclose(sim.state.velocity[:, 0], (-5.0, 5.0), rtol=0.0, atol=1e-9)
-
-
-def _plates(gap_m: float) -> dict:
-    half_w = 0.0005
-    material = {'mu_static': 0.3, 'mu_dynamic': 0.3, 'restitution': 0.5}
-    plates = [{'name': name, 'type': 'dynamic', 'polygon': box(half_w, 0.01), 'mass': 0.01,
-               'pose': [x, 0.0, 0.0], 'velocity': [v, 0.0, 0.0], **material}
-              for name, x, v in (('left', -0.5 * gap_m - half_w, 10.0),
-                                 ('right', 0.5 * gap_m + half_w, -10.0))]
-    return build(scene_dict('plates', plates, 'time_stepping', 1e-3, gravity=(0.0, 0.0)))
 
 
 def _count_calls(obj, name: str) -> list:
@@ -174,7 +171,7 @@ def test_bouncing_steps_run_compiled_with_the_reference_bits(case):
     runs = []
     for compiled in (True, False):
         if case == 'plates':
-            sim = Simulator(_plates(0.025), settings=TS.TimeStepSettings(compiled=compiled))
+            sim = Simulator(plates(0.025), settings=TS.TimeStepSettings(compiled=compiled))
         else:
             omega, angle, mu = (0.0, 0.0, 0.0) if case == 'wall flat' else (20.0, 0.2, 0.3)
             scene = thrown_at_thin_wall(omega, angle, mu).scene
