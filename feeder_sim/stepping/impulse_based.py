@@ -168,10 +168,12 @@ class ImpulseSettings:
 # ------------------------------------------------------------------------ kernel geometry
 # A side of a corner pointing into a face by more than this angle (rad) marks a face the
 # corner cannot touch (another corner's end face). Resting parts and trial steps tilt far
-# less: a step moves no corner more than a quarter candidate margin, 0.025 rad for a
-# 1 cm part; the faces of a vertex-vertex contact meet at tens of degrees.
+# less: a step turns no part by more than a quarter candidate margin over its radius
+# (0.025 rad by default); the faces of a vertex-vertex contact meet at tens of degrees.
 _SIDE_ANGLE = 0.25
 _SIN_SIDE_ANGLE = math.sin(_SIDE_ANGLE)
+
+
 @jit
 def _poses(t1, h, kind, drive_row, drives, gravity, pos, ang, vel, om, pos1, ang1, vel1, om1):
     """Free flight from t1 - h to t1: ballistic dynamic bodies, driven bodies on their drives."""
