@@ -172,6 +172,8 @@ class ImpulseSettings:
 # (0.025 rad by default); the faces of a vertex-vertex contact meet at tens of degrees.
 _SIDE_ANGLE = 0.25
 _SIN_SIDE_ANGLE = math.sin(_SIDE_ANGLE)
+# deepest sink, in penetration bands, that an approach left by capped sweeps may reach
+_CAPPED_SINK = 8
 
 
 @jit
@@ -447,10 +449,12 @@ def _run(t, t_stop, pos, ang, vel, om, kind, drive_row, drives, drive_speed, gra
             nx, ny = _face_frame(ang, b, normals, face)
             u0[c] = _gap_rate(pos, ang, vel, om, a, b, px, py, nx, ny)
             floor[c] = min(-eps_pen, gap)
-            if capped and u0[c] < 0.0 and gap <= eps:
-                # An approach the capped sweeps left may sink the gap one more band: holding
-                # it at its floor, a jam the sweeps never clear shrinks every step to h_floor
-                # and the clock stalls; unbounded, a part sinks through while the cap is hit.
+            if capped and u0[c] < 0.0 and -_CAPPED_SINK * eps_pen < gap <= eps:
+                # An approach the capped sweeps left may sink the gap one more band: held at
+                # its floor, a jam the sweeps never clear (a part wedged between two walls)
+                # shrinks every step to h_floor and the clock stalls. Not below a few bands:
+                # sweeps that converge too slowly for the cap (a stack of mass ratio 1e4) would
+                # sink a part millimetres; there, short steps give them more sweeps.
                 floor[c] -= eps_pen
         for it in range(max_toi):
             _poses(t + h, h, kind, drive_row, drives, gravity, pos, ang, vel, om, pos1, ang1,
