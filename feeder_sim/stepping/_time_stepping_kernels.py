@@ -148,17 +148,17 @@ class Warm(NamedTuple):
 
 class Approach(NamedTuple):
     """``TimeStepper._approach``: the body pairs ``lo[p] < hi[p]`` a speculative row with
-    restitution held back, and their velocities before the first such step, ``vel[p]`` =
-    (vx, vy, omega) of ``lo[p]``, then of ``hi[p]`` (m/s, rad/s)."""
+    restitution held back, and their velocities before the first such step: (vx, vy, omega)
+    of ``lo[p]`` in row ``2 p`` of ``vel``, of ``hi[p]`` in row ``2 p + 1`` (m/s, rad/s)."""
 
     lo: np.ndarray      # (p,) int64
     hi: np.ndarray      # (p,) int64
-    vel: np.ndarray     # (p, 6)
+    vel: np.ndarray     # (2 p, 3)
 
 
 def no_approach() -> Approach:
     """An empty :class:`Approach`."""
-    return Approach(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 6)))
+    return Approach(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)))
 
 
 class Reports(NamedTuple):
@@ -511,15 +511,10 @@ def _restore_approach(approach, a, b, normal, r_a, r_b, rest, newton, vel, om, b
             continue
         nx, ny = normal[q, 0], normal[q, 1]
         v_now = _contact_velocity(q, a[q], b[q], nx, ny, r_a, r_b, vel, om)[0]
-        ja = 0 if a[q] < b[q] else 3
-        jb = 3 - ja
-        pv = approach.vel
-        pax = pv[p, ja] + pv[p, ja + 2] * -r_a[q, 1]
-        pay = pv[p, ja + 1] + pv[p, ja + 2] * r_a[q, 0]
-        pbx = pv[p, jb] + pv[p, jb + 2] * -r_b[q, 1]
-        pby = pv[p, jb + 1] + pv[p, jb + 2] * r_b[q, 0]
-        rx, ry = pax - pbx, pay - pby
-        came_in = rx * nx + ry * ny
+        # the same contact with the pair's kept velocities (rows 2p: lower body, 2p + 1)
+        ka = 2 * p + (0 if a[q] < b[q] else 1)
+        came_in = _contact_velocity(q, ka, 4 * p + 1 - ka, nx, ny, r_a, r_b,
+                                    approach.vel[:, :2], approach.vel[:, 2])[0]
         lowest = came_in if came_in < v_now or came_in != came_in else v_now
         lowest = lowest if lowest < 0.0 or lowest != lowest else 0.0
         now = v_now if v_now < 0.0 or v_now != v_now else 0.0
@@ -533,7 +528,7 @@ def _held_back(ar, approach, a, b, held, vel, om):
     m = a.shape[0]
     lo = empty_i(ar, m)
     hi = empty_i(ar, m)
-    pv = empty_f2(ar, m, 6)
+    pv = empty_f2(ar, 2 * m, 3)
     n_pairs = 0
     for q in range(m):
         if not held[q]:
@@ -546,14 +541,15 @@ def _held_back(ar, approach, a, b, held, vel, om):
             continue
         lo[n_pairs], hi[n_pairs] = x, y
         old = _pair_index(approach, x, y)
-        for j in range(6):
-            if old >= 0:
-                pv[n_pairs, j] = approach.vel[old, j]
-            else:
-                i = x if j < 3 else y
-                pv[n_pairs, j] = vel[i, j % 3] if j % 3 < 2 else om[i]
+        for side in range(2):
+            r, i = 2 * n_pairs + side, y if side else x
+            for j in range(3):
+                if old >= 0:
+                    pv[r, j] = approach.vel[2 * old + side, j]
+                else:
+                    pv[r, j] = vel[i, j] if j < 2 else om[i]
         n_pairs += 1
-    return Approach(lo[:n_pairs], hi[:n_pairs], pv[:n_pairs])
+    return Approach(lo[:n_pairs], hi[:n_pairs], pv[:2 * n_pairs])
 
 
 @inner
@@ -757,7 +753,7 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
                 held[q] = spec[q] and rest[q] > 0.0 and p_n[q] > 0.0
             new_approach = _held_back(ar, approach, body_a, body_b, held, vel, om)
         else:
-            new_approach = Approach(empty_i(ar, 0), empty_i(ar, 0), empty_f2(ar, 0, 6))
+            new_approach = Approach(empty_i(ar, 0), empty_i(ar, 0), empty_f2(ar, 0, 3))
         o = _argsort(ar, keys)
         new_warm = Warm(gather(ar, keys, o), gather(ar, p_n, o), gather(ar, p_t, o))
     else:

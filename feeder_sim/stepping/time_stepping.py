@@ -398,16 +398,16 @@ class TimeStepper(StepperBase):
         held = self._approach
         approach = TK.no_approach() if not held else TK.Approach(
             np.array([p[0] for p in held], np.int64), np.array([p[1] for p in held], np.int64),
-            np.array([v.reshape(6) for v in held.values()]))
+            np.concatenate(list(held.values())))
         bodies, shapes = self._compiled
         settings = self._compiled_settings()
         code, t, warm, approach = TK.advance(
             state.t, t_end, state.position, state.angle, state.velocity, state.omega, bodies,
             shapes, self.world.drive_segments(state.t), settings, warm, approach, ints, floats,
             rep, msgs, n_msgs, (self._arenas[0].state, self._arenas[1].state))
-        self._approach = {(lo, hi): v.reshape(2, 3) for lo, hi, v in
-                          zip(approach.lo.tolist(), approach.hi.tolist(), approach.vel,
-                              strict=True)}
+        self._approach = {(lo, hi): approach.vel[2 * p:2 * p + 2] for p, (lo, hi) in
+                          enumerate(zip(approach.lo.tolist(), approach.hi.tolist(),
+                                        strict=True))}
         if any(arena.state[SHORT] for arena in self._arenas):
             self._arenas = tuple(new_arena(grown_capacity(a)) for a in self._arenas)
         state.t = t
