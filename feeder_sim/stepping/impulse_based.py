@@ -207,17 +207,16 @@ def _corner_gap(pos, ang, a, local, sides, b, start, end, verts, normals, intern
 
     Outside the envelope the gap is the largest signed distance from the piece's outer edge
     lines (a lower bound of the true distance). Within it, the face is the least-penetrated
-    one the corner can touch: neither of its sides (``sides``, body-frame vectors to its
-    neighbours) may point into the face by more than ``_SIDE_ANGLE`` (the supporting-vertex
-    test of ``collision.find_contacts``). A corner meeting a corner is otherwise taken
-    against the end face beside it, whose normal stops every slide along the other face."""
+    one the corner can touch: neither of its sides (``sides``, body-frame unit vectors
+    towards its neighbours) may point into the face by more than ``_SIDE_ANGLE`` (the
+    supporting-vertex test of ``collision.find_contacts``). A corner meeting a corner is
+    otherwise taken against the end face beside it, whose normal stops every slide along the
+    other face."""
     c, s = math.cos(ang[a]), math.sin(ang[a])
     px = pos[a, 0] + c * local[0] - s * local[1]
     py = pos[a, 1] + s * local[0] + c * local[1]
     ux, uy = c * sides[0] - s * sides[1], s * sides[0] + c * sides[1]
     wx, wy = c * sides[2] - s * sides[3], s * sides[2] + c * sides[3]
-    slack_u = _SIN_SIDE_ANGLE * math.hypot(ux, uy)
-    slack_w = _SIN_SIDE_ANGLE * math.hypot(wx, wy)
     cb, sb = math.cos(ang[b]), math.sin(ang[b])
     best, face = -math.inf, -1
     touch, touch_face = -math.inf, -1
@@ -231,7 +230,8 @@ def _corner_gap(pos, ang, a, local, sides, b, start, end, verts, normals, intern
         d = nx * (px - qx) + ny * (py - qy)
         if face < 0 or d > best:
             best, face = d, j
-        if (d > touch and ux * nx + uy * ny >= -slack_u and wx * nx + wy * ny >= -slack_w):
+        if (d > touch and ux * nx + uy * ny >= -_SIN_SIDE_ANGLE
+                and wx * nx + wy * ny >= -_SIN_SIDE_ANGLE):
             touch, touch_face = d, j
     if best <= eps and touch_face >= 0:
         return px, py, touch, touch_face
@@ -591,8 +591,10 @@ class ImpulseBased(StepperBase):
         a, b = vb[vertex], pb[piece]
         mu_s, mu_d, e = (m[a, b] for m in self._materials)
         topo = self.world.shapes.derived
-        sides = np.concatenate([v[topo.prev_vertex[vertex]] - v[vertex],
-                                v[topo.next_vertex[vertex]] - v[vertex]], axis=1)
+        prev = topo.prev_vertex[vertex]
+        sides = np.concatenate([(v[prev] - v[vertex]) / topo.edge_length[prev, None],
+                                (v[topo.next_vertex[vertex]] - v[vertex])
+                                / topo.edge_length[vertex, None]], axis=1)
         arrays = (a, np.ascontiguousarray(v[vertex]), sides, b, ps[piece], ps[piece + 1],
                   np.ascontiguousarray(mu_s), np.ascontiguousarray(mu_d),
                   np.ascontiguousarray(e))
