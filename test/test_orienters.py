@@ -21,8 +21,8 @@ from feeder_sim.simulator import Simulator
 DURATION_S = 4.5      # the sixth cup leaves at about 4.1 s with the good hook
 
 
-def _outcomes(scene, duration_s=DURATION_S, method=None):
-    sim = Simulator(scene, method=method)
+def _outcomes(scene, duration_s=DURATION_S, method=None, time_step=None):
+    sim = Simulator(scene, method=method, time_step=time_step)
     out = run(sim, duration_s).summary['outcomes']
     return sim, out
 
@@ -39,10 +39,14 @@ def _inside_the_machine(sim):
     assert np.all(com[:, 1] > -0.2) and np.all(np.abs(com[:, 0]) < 0.2), com
 
 
+# the scene's own method and step, event_driven at that step (0.2 ms) and at 4x it
+METHODS_AND_STEPS = [(None, None), ('event_driven', None), ('event_driven', 8e-4)]
+
+
 @pytest.mark.timeout(300)
-@pytest.mark.parametrize('method', [None, 'event_driven'])
-def test_good_hook_every_cup_leaves_open_end_up(method):
-    sim, out = _outcomes('orienter_hook', method=method)
+@pytest.mark.parametrize('method, time_step', METHODS_AND_STEPS)
+def test_good_hook_every_cup_leaves_open_end_up(method, time_step):
+    sim, out = _outcomes('orienter_hook', method=method, time_step=time_step)
     assert out['parts_exited'] == 6
     assert out['exit_orientations'] == {'open_end_up': 6, 'open_end_down': 0, 'other': 0}
     # within 20 degrees of upright, whichever way the cup arrived
@@ -57,9 +61,9 @@ def test_good_hook_every_cup_leaves_open_end_up(method):
 # edge, events ~30 ns apart); recognised again after a few events and stepped past further
 # each time, it costs ~1 100 events from 1.05 to 1.2 s where it cost ~25 000 (minutes of wall)
 @pytest.mark.timeout(300)
-@pytest.mark.parametrize('method', [None, 'event_driven'])
-def test_short_hook_catches_a_cup_and_the_queue_jams(method):
-    sim, out = _outcomes('orienter_hook_short', method=method)
+@pytest.mark.parametrize('method, time_step', METHODS_AND_STEPS)
+def test_short_hook_catches_a_cup_and_the_queue_jams(method, time_step):
+    sim, out = _outcomes('orienter_hook_short', method=method, time_step=time_step)
     assert out['jams'] >= 1 and out['parts_exited'] < 6
     first = min((p for p in out['parts'] if p['jam_time_s'] is not None),
                 key=lambda p: p['jam_time_s'])
