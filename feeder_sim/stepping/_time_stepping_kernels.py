@@ -13,6 +13,14 @@ reference's fallback ladder solves it, counted in ``stats.fallbacks`` there), or
 step's contacts would overflow the report buffers (``GROW``: they are doubled). Contacts
 with restitution are stepped here too: the velocities a speculative row held back
 (:class:`Approach`) travel from step to step like the warm start.
+
+The step, its contact search and its solve are compiled into ``advance`` itself (LLVM
+inlining, ``machine_inline``) rather than called: a call between kernels hands over every
+array of its arguments (the step's are some 80) and clears the callee's local array slots,
+which together took more than half of a free part's step (1.3 -> 0.6 us) and a sixth of
+one part conveying at dt = 1e-4 (``benchmarks/throughput.py``: 3.7 -> 3.1 us per step).
+The price is a longer first compile of ``time_stepping`` (``benchmarks/compile.py``: 49 ->
+83 s on a 2-core machine); the default run (``event_driven``) does not compile this module.
 """
 
 from __future__ import annotations
@@ -254,7 +262,7 @@ def _prescribed(t, drives, driven_idx, position, velocity):
             velocity[i, j] = v * u
 
 
-@inner
+@inner(machine_inline=True)
 def _find_contacts(ar, shapes, position, angle, dynamic, margin, narrow):
     """``collision.find_contacts(shapes, position, angle, dynamic, margin=margin)``: the
     kept contacts' (vertex, edge, gap, edge_param, world vertices, world normals)."""
@@ -386,7 +394,7 @@ def _record_batch(ints, floats, sel, rows, work, res, converged):
     floats[F_MAX_RESIDUAL] = _larger(floats[F_MAX_RESIDUAL], _nan_max(res, sel))
 
 
-@inner
+@inner(machine_inline=True)
 def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b_t, box, mu_lo,
            mu_hi, mu_s, mu_d, keys, todo, warm, st, ints, floats, msgs, n_msgs):
     """``TimeStepper._solve`` (arrays in island order): the impulses, or ``ok`` False where
@@ -552,7 +560,7 @@ def _held_back(ar, approach, a, b, held, vel, om):
     return Approach(lo[:n_pairs], hi[:n_pairs], pv[:2 * n_pairs])
 
 
-@inner
+@inner(machine_inline=True)
 def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approach, ints, floats,
           rep, msgs, n_msgs):
     """One ``TimeStepper.step`` of ``h`` from ``t0``: ``(code, warm, approach)``; the state,
