@@ -55,7 +55,7 @@ def test_reference_impulse_lcp_holds_the_light_boxes_still():
     h = sim.scene.solver.time_step
     seen = []
 
-    def solve(cs, geo, todo, b_n, b_t, box, lo, hi, keys, p_n, p_t):
+    def solve(cs, geo, todo, b_n, b_t, box, lo, hi, keys, p_n, p_t, p_state):
         (i,) = np.flatnonzero(todo)
         order = geo.order
         v_t_pre = np.zeros(cs.n)
@@ -63,7 +63,7 @@ def test_reference_impulse_lcp_holds_the_light_boxes_still():
                                   v_t_pre, np.zeros(cs.n, bool), True, stepper.settings,
                                   sim.stats)
         seen.append(dv)
-        return original(cs, geo, todo, b_n, b_t, box, lo, hi, keys, p_n, p_t)
+        return original(cs, geo, todo, b_n, b_t, box, lo, hi, keys, p_n, p_t, p_state)
 
     original = stepper._solve
     stepper._solve = solve
@@ -215,3 +215,29 @@ def test_a_hopping_pile_warm_starts_from_the_last_step_with_contacts():
     assert ref_stats['pgs_solves'] > 20
     assert got.tobytes() == ref.tobytes()
     assert got_stats == ref_stats
+
+
+@pytest.mark.parametrize('dt', [1e-4, 1e-3])
+@pytest.mark.parametrize('gamma', [0.5, 1.5])
+def test_row_states_of_the_step_before_give_dantzigs_answer_without_its_pivots(gamma, dt):
+    # One box on a track vibrating at 50 Hz, sliding on it (Gamma 0.5) or hopping (1.5), for
+    # 0.5 s: solving each small island first in the row states of the step before
+    # (reuse_row_states) must give Baraff-Dantzig's answer from scratch to round-off: states
+    # within 1e-15 m and m/s (measured: 3.5e-18 m at most), with at most half of its pivots
+    # (measured: 389 against 20 086 sliding and 2 117 against 10 106 hopping at dt 1e-4,
+    # 453 against 2 055 and 344 against 915 at dt 1e-3).
+    runs = {}
+    for reuse in (True, False):
+        sim = Simulator(build(conveyor(psi=math.radians(20.0), mu=0.5, theta=0.0, gamma=gamma,
+                                       frequency_hz=50.0, method='time_stepping',
+                                       time_step=dt, name='conveying')))
+        sim._stepper.settings.reuse_row_states = reuse
+        sim.advance(0.5)
+        runs[reuse] = sim
+    on, off = runs[True], runs[False]
+    assert np.abs(on.state.position - off.state.position).max() <= 1e-15
+    assert np.abs(on.state.velocity - off.state.velocity).max() <= 1e-15
+    assert np.abs(on.state.angle - off.state.angle).max() <= 1e-15
+    assert on.stats.steps == off.stats.steps and on.stats.fallbacks == 0
+    assert off.stats.pivots > 0 and on.stats.pivots <= 0.5 * off.stats.pivots
+    assert on.state.position[1, 0] > 0.005          # it conveys: 5 mm or more in 0.5 s

@@ -38,7 +38,12 @@ from feeder_sim._arena import (
     zeros_f2,
 )
 from feeder_sim._jit import inner, jit
-from feeder_sim.contact._lcp_kernels import _affine, _dense_residual, dantzig
+from feeder_sim.contact._lcp_kernels import (
+    _affine,
+    _dense_residual,
+    dantzig,
+    solve_with_states,
+)
 
 
 @inner
@@ -654,16 +659,31 @@ def _island_dense(ar, lo_c, hi_c, c, a, b, ja, jb, ma, mb, b_n, b_t, box, mu_lo,
     return A, bb, nof, lo, hi, rc, rf
 
 
+# Row states kept per contact from one step to the next (``solve_small``): the normal row's in
+# the low three bits, the friction row's above them, NO_FRICTION_ROW there for a contact
+# without one; -1 where there is nothing to go on.
+_STATE_BITS = 3
+NO_FRICTION_ROW = 7
+# An island solved on its previous row states is taken when the answer's lcp.residual is
+# at most this: round-off of a solution in those states (Dantzig's own answers reach
+# 1e-16 to 1e-14), far below the lcp_tol its answers must meet (1e-9 by default).
+STATES_TOL = 1e-12
+
+
 @jit
 def solve_small(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, b_n,
-                b_t, box, mu_lo, mu_hi, x_n, x_t, w_t):
+                b_t, box, mu_lo, mu_hi, x_n, x_t, w_t, states_in, states_out):
     """The islands with ``select`` (contacts grouped by ``starts``, CSR) by Baraff-Dantzig
-    (``dantzig``), from scratch.
+    (``dantzig``), from scratch, or in one solve where every contact of an island comes with
+    the row states it ended the last step in (``states_in``, see ``_STATE_BITS``) and the
+    problem solved in those states is solved to ``STATES_TOL`` (a part resting or sliding
+    as it did: the same answer to round-off, without pivoting to it again).
 
     An island's problem has its normal rows, then the friction rows of the contacts with
     ``box[k]`` (bounds ``[-mu_lo x_N, mu_hi x_N]``; other contacts keep x_T = 0), exactly
-    ``dynamics.assemble``'s layout. Writes the impulses to ``x_n`` / ``x_t`` and the new
-    tangential velocity of contacts with a friction row to ``w_t``; returns per island the
+    ``dynamics.assemble``'s layout. Writes the impulses to ``x_n`` / ``x_t``, the new
+    tangential velocity of contacts with a friction row to ``w_t`` and the row states the
+    answer ends in to ``states_out`` (-1 where Dantzig failed); returns per island the
     residual (``lcp.residual``), the pivots and the Dantzig abort codes (pass, retry)."""
     n_isl = starts.shape[0] - 1
     c = a.shape[0]
@@ -677,13 +697,29 @@ def solve_small(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, i
         A, bb, nof, lo, hi, rc, rf = _island_dense(ar, starts[isl], starts[isl + 1], c, a, b,
                                                    ja, jb, ma, mb, b_n, b_t, box, mu_lo, mu_hi)
         m = bb.shape[0]
-        x, piv, c1, c2 = dantzig(ar, A, bb, nof, lo, hi, 50 * m + 50)
-        wv = _affine(ar, A, x, bb)
-        res[isl] = _dense_residual(A, bb, x, wv, nof, lo, hi)
+        known = True
+        for k in range(starts[isl], starts[isl + 1]):
+            known = known and states_in[k] >= 0
+        r = np.inf
+        st = empty_i(ar, m)
+        x, wv = bb, bb
+        if known:
+            for i in range(m):
+                packed = states_in[rc[i]]
+                st[i] = packed >> _STATE_BITS if rf[i] else packed & NO_FRICTION_ROW
+            x, wv, r = solve_with_states(ar, A, bb, nof, lo, hi, st)
+        if r <= STATES_TOL:
+            piv, c1, c2 = 0, 0, 0
+        else:
+            x, piv, c1, c2, st = dantzig(ar, A, bb, nof, lo, hi, 50 * m + 50)
+            wv = _affine(ar, A, x, bb)
+            r = _dense_residual(A, bb, x, wv, nof, lo, hi)
+        res[isl] = r
         work[isl] = piv
         codes[isl, 0], codes[isl, 1] = c1, c2
         for k in range(starts[isl], starts[isl + 1]):
             x_t[k] = 0.0
+            states_out[k] = NO_FRICTION_ROW << _STATE_BITS if c1 == 0 else -1
         for i in range(m):
             k = rc[i]
             if rf[i]:
@@ -691,6 +727,11 @@ def solve_small(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, i
                 w_t[k] = wv[i]
             else:
                 x_n[k] = x[i]
+            if c1 == 0:
+                if rf[i]:
+                    states_out[k] = (states_out[k] & NO_FRICTION_ROW) | (st[i] << _STATE_BITS)
+                else:
+                    states_out[k] = (states_out[k] & ~NO_FRICTION_ROW) | st[i]
     return res, work, codes
 
 

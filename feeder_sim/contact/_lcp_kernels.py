@@ -302,7 +302,9 @@ def _dz_direction(ar, A, b, st, nof, lo, hi, d, sigma, amax, cnt):
 def dantzig(ar, A, b, nof, lo, hi, max_pivots):
     """``lcp._dantzig``: a Baraff-Dantzig pass from x = 0 and, with friction, when it
     aborts, one retry treating every normal before any friction row. Returns (x, pivots,
-    abort code of the pass, abort code of the retry); codes are 0 on success."""
+    abort code of the pass, abort code of the retry, row states); codes are 0 on success,
+    and the row states (``_U`` .. ``_Z``) are those x ends with when the pass succeeded:
+    :func:`solve_with_states` solves them again in one piece."""
     m = b.shape[0]
     amax = 0.0
     bmax = 0.0
@@ -630,7 +632,7 @@ def dantzig(ar, A, b, nof, lo, hi, max_pivots):
                     for k in range(m):
                         x[k] = xp[k]
             release(ar, level)
-            return x, total, _OK, _OK
+            return x, total, _OK, _OK, st
         r = _dense_residual(A, b, x, w, nof, lo, hi)
         if r < best_r:
             best_r = r
@@ -639,7 +641,34 @@ def dantzig(ar, A, b, nof, lo, hi, max_pivots):
         if nfr == 0 or total >= max_pivots:
             break
     release(ar, level)
-    return best_x, total, codes[0], codes[1]
+    return best_x, total, codes[0], codes[1], st
+
+
+@inner
+def solve_with_states(ar, A, b, nof, lo, hi, st):
+    """The LCP's solution if its rows end in the states ``st`` (``dantzig``'s, e.g. those of
+    the step before): the clamped rows solved in one piece with w = 0, friction rows at a
+    bound slaved to their normals, the others at x = 0 (``dantzig``'s final polish). Returns
+    (x, w, lcp residual); the residual is inf where the states do not fit the problem (a
+    friction row at a bound of a normal that is not clamped) or the clamped rows are
+    (nearly) dependent, which ``dantzig`` resolves its own way."""
+    m = b.shape[0]
+    amax = 0.0
+    for i in range(m):
+        s = st[i]
+        if s < _U or s > _Z or ((s == _L or s == _H) and (nof[i] < 0 or st[nof[i]] != _C)):
+            return zeros_f(ar, m), zeros_f(ar, m), np.inf
+        for j in range(m):
+            amax = max(amax, abs(A[i, j]))
+    if amax == 0.0:
+        amax = 1.0
+    cnt = full_i(ar, 2, 0)
+    no_row = m - m - 1      # -1, typed like dantzig's row index (a literal would compile anew)
+    x, w = _dz_direction(ar, A, b, st, nof, lo, hi, no_row, 0.0, amax, cnt)
+    if cnt[1]:
+        return x, w, np.inf
+    w = _affine(ar, A, x, b)
+    return x, w, _dense_residual(A, b, x, w, nof, lo, hi)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -766,7 +795,8 @@ def lcp_dantzig(W, b_full, friction, mu_lo, mu_hi, slave):
     # the pivots' scratch in one allocation (a direction's dense system and its LU, the
     # bookkeeping; each direction's is given back before the next) instead of some fifty
     buf = np.empty(8 * (4 * m * m + 48 * m) + 8192, np.uint8)
-    x, pivots, code, retry = dantzig(local_arena(buf), A, b, normal_of, lo, hi, 50 * m + 50)
+    x, pivots, code, retry, _ = dantzig(local_arena(buf), A, b, normal_of, lo, hi,
+                                        50 * m + 50)
     x = x.copy()
     if buf.shape[0] == 0:    # (buf in use until x is out of it)
         x = x.copy()

@@ -135,6 +135,7 @@ class StepSettings(NamedTuple):
     spec_depth: float          # speculative_depth x collision.DEPTH_FRACTION
     slip_tol_mps: float
     lcp_tol: float
+    reuse_row_states: bool
     direct_max_rows: int
     pgs_tol_mps: float
     pgs_max_sweeps: int
@@ -147,11 +148,13 @@ class StepSettings(NamedTuple):
 
 
 class Warm(NamedTuple):
-    """Impulses of the previous step by feature key ``vertex * n_vertices + edge``, sorted."""
+    """Impulses of the previous step by feature key ``vertex * n_vertices + edge``, sorted,
+    and the row states each contact's small-island solve ended in (``solve_small``)."""
 
     keys: np.ndarray
     p_n: np.ndarray
     p_t: np.ndarray
+    state: np.ndarray
 
 
 class Approach(NamedTuple):
@@ -346,14 +349,13 @@ def _nan_max(x, sel):
 
 
 @inner
-def _warm_lookup(ar, warm, keys):
-    """``_Warm.lookup``: the previous impulses of these features, 0 where one is new."""
+def _warm_find(ar, warm, keys):
+    """``_Warm.find``: where these features are among the previous step's, -1 where new."""
     k = keys.shape[0]
-    x_n = zeros_f(ar, k)
-    x_t = zeros_f(ar, k)
+    at = full_i(ar, k, -1)
     size = warm.keys.shape[0]
     if size == 0:
-        return x_n, x_t
+        return at
     for q in range(k):
         lo, hi = 0, size
         while lo < hi:       # searchsorted, side='left'
@@ -364,9 +366,8 @@ def _warm_lookup(ar, warm, keys):
                 hi = mid
         pos = min(lo, size - 1)
         if warm.keys[pos] == keys[q]:
-            x_n[q] = warm.p_n[pos]
-            x_t[q] = warm.p_t[pos]
-    return x_n, x_t
+            at[q] = pos
+    return at
 
 
 @inner
@@ -397,8 +398,9 @@ def _record_batch(ints, floats, sel, rows, work, res, converged):
 @inner(machine_inline=True)
 def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b_t, box, mu_lo,
            mu_hi, mu_s, mu_d, keys, todo, warm, st, ints, floats, msgs, n_msgs):
-    """``TimeStepper._solve`` (arrays in island order): the impulses, or ``ok`` False where
-    the compiled Dantzig missed ``lcp_tol`` (the reference step takes over)."""
+    """``TimeStepper._solve`` (arrays in island order): the impulses and the row states of
+    the small islands' answers, or ``ok`` False where the compiled Dantzig missed ``lcp_tol``
+    (the reference step takes over)."""
     k = a.shape[0]
     n_isl = starts.shape[0] - 1
     lens = empty_i(ar, n_isl)
@@ -422,15 +424,16 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
     for q in range(k):
         may_slide[q] = box[q] and mu_d[q] < mu_s[q]
         any_slide = any_slide or may_slide[q]
-    if any_large:
-        # PGS starts from the previous step's impulses (Dantzig from scratch)
-        x_n, x_t = _warm_lookup(ar, warm, keys)
-        for q in range(k):
-            if not todo[isl[q]]:
-                x_n[q] = 0.0
-                x_t[q] = 0.0
-    else:
-        x_n, x_t = zeros_f(ar, k), zeros_f(ar, k)
+    at = _warm_find(ar, warm, keys)
+    states_in = empty_i(ar, k)
+    x_n, x_t = zeros_f(ar, k), zeros_f(ar, k)
+    for q in range(k):
+        states_in[q] = warm.state[at[q]] if at[q] >= 0 and st.reuse_row_states else -1
+        if any_large and at[q] >= 0 and todo[isl[q]]:
+            # PGS starts from the previous step's impulses (Dantzig from scratch)
+            x_n[q] = warm.p_n[at[q]]
+            x_t[q] = warm.p_t[at[q]]
+    states = full_i(ar, k, -1)
     lo = copy_f(ar, mu_lo)
     hi = copy_f(ar, mu_hi)
     v_t_new = zeros_f(ar, k)
@@ -439,10 +442,10 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
         if small.any():
             res, work, codes = solve_small(ar, small, starts, a, b, normal, tangent, r_a, r_b,
                                            bodies.inv_mass, bodies.inv_inertia, b_n, b_t, box,
-                                           lo, hi, x_n, x_t, v_t_new)
+                                           lo, hi, x_n, x_t, v_t_new, states_in, states)
             for i in range(n_isl):
                 if small[i] and res[i] > st.lcp_tol:
-                    return x_n, x_t, False
+                    return x_n, x_t, states, False
             _record_batch(ints, floats, small, rows, work, res, ones)
         if large.any():
             res, vres, work = solve_pgs(ar, large, starts, a, b, normal, tangent, r_a, r_b,
@@ -494,7 +497,7 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
         for i in range(n_isl):
             small[i] = small[i] and redo[i]
             large[i] = large[i] and redo[i]
-    return x_n, x_t, True
+    return x_n, x_t, states, True
 
 
 @inner
@@ -702,6 +705,7 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
             keys[q] = vert[q] * nv + edge[q]
         p_n = zeros_f(ar, m)
         p_t = zeros_f(ar, m)
+        p_state = full_i(ar, m, -1)
         bouncy = False
         for q in range(m):
             bouncy = bouncy or rest[q] > 0.0
@@ -735,7 +739,7 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
         normal_o, tangent_o = gather_rows(ar, normal, order), gather_rows(ar, tangent, order)
         r_a_o, r_b_o = gather_rows(ar, r_a, order), gather_rows(ar, r_b, order)
         if n_neg:
-            x_n, x_t, ok_solve = _solve(
+            x_n, x_t, states, ok_solve = _solve(
                 ar, n, starts, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o, bodies, b_no,
                 gather(ar, v_t_free, order), gather(ar, box, order), gather(ar, mu_lo, order),
                 gather(ar, mu_hi, order), gather(ar, mu_s, order), gather(ar, mu_d, order),
@@ -745,6 +749,7 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
             for q in range(m):
                 p_n[order[q]] = x_n[q]
                 p_t[order[q]] = x_t[q]
+                p_state[order[q]] = states[q]
             dv = zeros_f2(ar, n, 3)
             apply_impulses(ar, dv, body_a, body_b, normal, tangent, r_a, r_b,
                            bodies.inv_mass, bodies.inv_inertia, p_n, p_t)
@@ -763,11 +768,13 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
         else:
             new_approach = Approach(empty_i(ar, 0), empty_i(ar, 0), empty_f2(ar, 0, 3))
         o = _argsort(ar, keys)
-        new_warm = Warm(gather(ar, keys, o), gather(ar, p_n, o), gather(ar, p_t, o))
+        new_warm = Warm(gather(ar, keys, o), gather(ar, p_n, o), gather(ar, p_t, o),
+                        gather(ar, p_state, o))
     else:
         # carried on unchanged, into this step's arena: the one they live in is reset by the
         # step after next
-        new_warm = Warm(copy_i(ar, warm.keys), copy_f(ar, warm.p_n), copy_f(ar, warm.p_t))
+        new_warm = Warm(copy_i(ar, warm.keys), copy_f(ar, warm.p_n), copy_f(ar, warm.p_t),
+                        copy_i(ar, warm.state))
         new_approach = Approach(copy_i(ar, approach.lo), copy_i(ar, approach.hi),
                                 copy_f2(ar, approach.vel))
 
@@ -859,7 +866,8 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
             res, work, codes = solve_small(ar, sel, starts, a_o, b_o, normal_o, tangent_o,
                                            r_a_o, r_b_o, bodies.inv_mass, bodies.inv_inertia,
                                            rhs, zeros, full_b(ar, kk, False), zeros, zeros,
-                                           x_n, zeros_f(ar, kk), zeros_f(ar, kk))
+                                           x_n, zeros_f(ar, kk), zeros_f(ar, kk),
+                                           full_i(ar, kk, -1), empty_i(ar, kk))
             for i in range(n_isl):
                 if sel[i] and res[i] > st.lcp_tol:
                     return REFERENCE, warm, approach
@@ -944,7 +952,7 @@ def advance(t, t_end, pos, ang, vel, om, bodies, shapes, drives, st, warm, appro
     # arrays until the call returns
     pos, ang, vel, om = borrow(pos), borrow(ang), borrow(vel), borrow(om)
     ints, floats, msgs, n_msgs = borrow(ints), borrow(floats), borrow(msgs), borrow(n_msgs)
-    warm = Warm(borrow(warm.keys), borrow(warm.p_n), borrow(warm.p_t))
+    warm = Warm(borrow(warm.keys), borrow(warm.p_n), borrow(warm.p_t), borrow(warm.state))
     approach = Approach(borrow(approach.lo), borrow(approach.hi), borrow(approach.vel))
     bodies = StepBodies(
         borrow(bodies.dynamic), borrow(bodies.dyn_idx), borrow(bodies.driven_idx),
@@ -979,5 +987,5 @@ def advance(t, t_end, pos, ang, vel, om, bodies, shapes, drives, st, warm, appro
             break
         t = t + step
         n += 1
-    return (code, t, Warm(warm.keys.copy(), warm.p_n.copy(), warm.p_t.copy()),
+    return (code, t, Warm(warm.keys.copy(), warm.p_n.copy(), warm.p_t.copy(), warm.state.copy()),
             Approach(approach.lo.copy(), approach.hi.copy(), approach.vel.copy()))

@@ -47,7 +47,13 @@ island's problem is the ``dynamics.assemble`` layout (normals, then the friction
   gives the same conveying speed to the last bit). It is 40-100x faster than ``lcp.solve`` in
   Python (4 rows: 0.5 ms -> ~5 us; 30-38 rows: 1.5-5 ms -> 35-150 us). If its answer misses
   ``lcp_tol`` the island is solved again by the reference path (``solve_impulses``: ``lcp.solve``
-  and its Lemke / PGS / frictionless ladder) and counted in ``stats.fallbacks``;
+  and its Lemke / PGS / frictionless ladder) and counted in ``stats.fallbacks``. An island
+  whose contacts all ended the step before in known row states is first solved in those
+  states in one piece (``_lcp_kernels.solve_with_states``, the Dantzig pass's final polish;
+  ``reuse_row_states``) and that answer is taken if its ``lcp.residual`` is <= 1e-12: a part
+  resting or sliding as it did costs one small solve instead of its pivots (one part
+  conveying at dt = 1e-4: 2.0 -> 0.4 pivots per step). It is an answer of the same LCP;
+  where the LCP has one, Dantzig's to round-off;
 * larger islands (piles): projected Gauss-Seidel in velocity form (``_island_kernels.solve_pgs``,
   SOR factor ``pgs_omega``), warm-started with the previous step's impulses of the same
   vertex-edge features, each normal followed by its friction row. Pivoting does not scale:
@@ -153,6 +159,10 @@ class TimeStepSettings:
     #                                a thin wall's vertex is matched to its far face or missed
     slip_tol_mps: float = 1e-9     # |v_T| below which a contact is sticking
     lcp_tol: float = 1e-9          # lcp.residual the Dantzig path must reach
+    reuse_row_states: bool = True  # a small island whose contacts all come with the row
+    #                                states of the step before is solved in those states in
+    #                                one piece when that solves it (residual <= 1e-12);
+    #                                False: Baraff-Dantzig from scratch every step
     direct_max_rows: int = 48      # islands with more LCP rows go to projected Gauss-Seidel
     pgs_tol_mps: float = 1e-3      # velocity residual (m/s) the PGS path must reach
     pgs_max_sweeps: int = 200
@@ -200,28 +210,33 @@ def solve_impulses(world: World, cs: ContactSet, bodies: np.ndarray, b_n: np.nda
 
 
 class _Warm:
-    """Impulses of the previous step by contact feature (vertex, edge), to warm-start PGS."""
+    """Impulses of the previous step by contact feature (vertex, edge), to warm-start PGS,
+    and the row states of each contact's small-island answer, to solve its island again in
+    one piece (``_island_kernels.solve_small``; -1: none)."""
 
     def __init__(self, n_vertices: int) -> None:
         self.n_vertices = n_vertices
         self.keys = np.zeros(0, np.int64)
         self.p_n = np.zeros(0)
         self.p_t = np.zeros(0)
+        self.state = np.zeros(0, np.int64)
 
     def key(self, contacts) -> np.ndarray:
         return contacts.vertex_a.astype(np.int64) * self.n_vertices + contacts.edge_b
 
-    def lookup(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Previous impulses of these features (0 where a feature is new)."""
+    def lookup(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Previous impulses and row states of these features (0 and -1 where one is new)."""
         if not self.keys.size:
-            return np.zeros(keys.size), np.zeros(keys.size)
+            return np.zeros(keys.size), np.zeros(keys.size), np.full(keys.size, -1)
         pos = np.minimum(np.searchsorted(self.keys, keys), self.keys.size - 1)
         hit = self.keys[pos] == keys
-        return np.where(hit, self.p_n[pos], 0.0), np.where(hit, self.p_t[pos], 0.0)
+        return (np.where(hit, self.p_n[pos], 0.0), np.where(hit, self.p_t[pos], 0.0),
+                np.where(hit, self.state[pos], -1))
 
-    def store(self, keys: np.ndarray, p_n: np.ndarray, p_t: np.ndarray) -> None:
+    def store(self, keys: np.ndarray, p_n: np.ndarray, p_t: np.ndarray,
+              state: np.ndarray) -> None:
         o = np.argsort(keys, kind='stable')
-        self.keys, self.p_n, self.p_t = keys[o], p_n[o], p_t[o]
+        self.keys, self.p_n, self.p_t, self.state = keys[o], p_n[o], p_t[o], state[o]
 
 
 # Gathering rows of (k, 2) arrays by an index array: ``ndarray.take(i, axis=0)`` copies the same
@@ -326,7 +341,8 @@ class TimeStepper(StepperBase):
             float(spec.time_step), float(st.touch_m), float(st.projection_slop_m),
             float(st.projection_reach), float(st.slop_m), float(st.push_out),
             float(st.push_max_mps), st.speculative_depth * DEPTH_FRACTION,
-            float(st.slip_tol_mps), float(st.lcp_tol), int(st.direct_max_rows),
+            float(st.slip_tol_mps), float(st.lcp_tol), bool(st.reuse_row_states),
+            int(st.direct_max_rows),
             float(st.pgs_tol_mps), int(st.pgs_max_sweeps), int(st.pgs_check),
             float(st.pgs_omega), bool(spec.friction_impulse), narrow)
 
@@ -394,7 +410,7 @@ class TimeStepper(StepperBase):
         floats = np.array([getattr(stats, f) for f in TK.FLOAT_MAXIMA], dtype=float)
         msgs = np.zeros((max(0, 20 - len(stats.messages)), 4))
         n_msgs = np.zeros(1, np.int64)
-        warm = TK.Warm(self._warm.keys, self._warm.p_n, self._warm.p_t)
+        warm = TK.Warm(self._warm.keys, self._warm.p_n, self._warm.p_t, self._warm.state)
         held = self._approach
         approach = TK.no_approach() if not held else TK.Approach(
             np.array([p[0] for p in held], np.int64), np.array([p[1] for p in held], np.int64),
@@ -411,7 +427,7 @@ class TimeStepper(StepperBase):
         if any(arena.state[SHORT] for arena in self._arenas):
             self._arenas = tuple(new_arena(grown_capacity(a)) for a in self._arenas)
         state.t = t
-        self._warm.keys, self._warm.p_n, self._warm.p_t = warm
+        self._warm.keys, self._warm.p_n, self._warm.p_t, self._warm.state = warm
         for name, value in zip(TK.INT_COUNTERS, ints.tolist(), strict=True):
             if name == 'max_lcp_rows':
                 stats.max_lcp_rows = max(stats.max_lcp_rows, value)
@@ -536,7 +552,8 @@ class TimeStepper(StepperBase):
         x_n = np.zeros(k)
         res, work, codes = K.solve_small(
             heap_state(), sel, *geo.kernel_args, gap[order] + st.projection_slop_m, zeros,
-            np.zeros(k, bool), zeros, zeros, x_n, np.zeros(k), np.zeros(k))
+            np.zeros(k, bool), zeros, zeros, x_n, np.zeros(k), np.zeros(k), np.full(k, -1),
+            np.empty(k, np.int64))
         bad = sel & (res > st.lcp_tol)
         ok = sel & ~bad
         self.stats.record_batch((starts[1:] - starts[:-1])[ok], work[ok], res[ok],
@@ -669,6 +686,7 @@ class TimeStepper(StepperBase):
         keys = self._warm.key(c)
         p_n = np.zeros(c.n)
         p_t = np.zeros(c.n)
+        p_state = np.full(c.n, -1)
         bouncy = restitution > 0.0
         if bouncy.any():
             # speculative rows: neither a pile's nor a Newton row (the kernel's index set)
@@ -686,7 +704,7 @@ class TimeStepper(StepperBase):
         if neg.any():
             failed = self._solve(cs, geo, neg, b_no, v_t_free[order],
                                  box[order], mu_lo[order], mu_hi[order],
-                                 keys[order], p_n, p_t)
+                                 keys[order], p_n, p_t, p_state)
             for i in failed:
                 # the numba Dantzig missed the tolerance: the reference path (lcp.solve's
                 # whole ladder) solves the island again
@@ -696,6 +714,7 @@ class TimeStepper(StepperBase):
                     v_t_free[idx], v_t_pre[idx], colliding[idx], self.spec.friction_impulse,
                     st, stats, slip_tol)
                 p_n[idx], p_t[idx] = impulse[:len(idx)], impulse[len(idx):]
+                p_state[idx] = -1
             dv = np.zeros((w.n, 3))
             K.apply_impulses(heap_state(), dv, a, b, c.normal, cs.tangent, cs.r_a, cs.r_b,
                              w.inv_mass, w.inv_inertia, p_n, p_t)
@@ -705,7 +724,7 @@ class TimeStepper(StepperBase):
         stats.impacts += int(np.count_nonzero(colliding & (p_n > 0)))
         self._approach = (self._held_back(cs, spec & bouncy & (p_n > 0.0), state)
                           if bouncy.any() else {})
-        self._warm.store(keys, p_n, p_t)
+        self._warm.store(keys, p_n, p_t, p_state)
         return StepContacts(cs, p_n, p_t)
 
     def _held_back(self, cs: ContactSet, held: np.ndarray,
@@ -817,11 +836,12 @@ class TimeStepper(StepperBase):
                 float(gap.min(initial=np.inf)))
 
     def _solve(self, cs: ContactSet, geo: _IslandGeometry, todo, b_n, b_t, box, lo, hi, keys,
-               p_n, p_t) -> np.ndarray:
-        """Islands with ``todo`` (the non-trivial ones): small ones by the numba Dantzig,
-        large ones by PGS, each followed by Kawachi's second pass where a static contact
-        saturated. Arrays b_n .. keys are in island order (``order``). Writes p_n / p_t and
-        returns the islands whose Dantzig answer missed ``lcp_tol``."""
+               p_n, p_t, p_state) -> np.ndarray:
+        """Islands with ``todo`` (the non-trivial ones): small ones by the numba Dantzig
+        (or in one piece on the row states they had), large ones by PGS, each followed by
+        Kawachi's second pass where a static contact saturated. Arrays b_n .. keys are in
+        island order (``order``). Writes p_n / p_t and the small islands' row states
+        p_state, and returns the islands whose Dantzig answer missed ``lcp_tol``."""
         w, st, stats = self.world, self.settings, self.stats
         order, starts = geo.order, geo.starts
         data = geo.kernel_args + (b_n, b_t, box)
@@ -833,20 +853,23 @@ class TimeStepper(StepperBase):
         rows = lens + np.add.reduceat(box, starts[:-1])
         small = todo & (rows <= st.direct_max_rows)
         large = todo & ~small
+        x_n, x_t, states_in = self._warm.lookup(keys)
+        if not st.reuse_row_states:
+            states_in[:] = -1
         if large.any():
             # PGS starts from the previous step's impulses (Dantzig from scratch)
-            x_n, x_t = self._warm.lookup(keys)
             if not todo.all():
                 x_n[~todo[isl]] = 0.0   # trivial islands: zero impulses, not last step's
                 x_t[~todo[isl]] = 0.0
         else:
             x_n, x_t = np.zeros(len(keys)), np.zeros(len(keys))
+        states = np.full(len(keys), -1)
         v_t_new = np.zeros(len(b_n))
         failed = np.zeros(len(lens), bool)
         for again in (True, False):
             if small.any():
                 res, work, codes = K.solve_small(heap_state(), small, *data, lo, hi, x_n, x_t,
-                                                 v_t_new)
+                                                 v_t_new, states_in, states)
                 bad = small & (res > st.lcp_tol)
                 ok = small & ~bad
                 stats.record_batch(rows[ok], work[ok], res[ok], np.ones(ok.sum(), bool),
@@ -882,4 +905,5 @@ class TimeStepper(StepperBase):
             small, large = small & redo, large & redo
         p_n[order] = x_n
         p_t[order] = x_t
+        p_state[order] = states
         return np.flatnonzero(failed)
