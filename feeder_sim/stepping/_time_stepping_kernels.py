@@ -350,7 +350,7 @@ def _nan_max(x, sel):
 
 @inner
 def _warm_find(ar, warm, keys):
-    """``_Warm.find``: where these features are among the previous step's, -1 where new."""
+    """Where these features are among the previous step's (``_Warm.lookup``), -1 where new."""
     k = keys.shape[0]
     at = full_i(ar, k, -1)
     size = warm.keys.shape[0]
