@@ -719,8 +719,9 @@ def solve_small(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, i
         codes[isl, 0], codes[isl, 1] = c1, c2
         for k in range(starts[isl], starts[isl + 1]):
             x_t[k] = 0.0
-            states_out[k] = NO_FRICTION_ROW << _STATE_BITS if c1 == 0 else -1
+            states_out[k] = -1
         for i in range(m):
+            # the normal rows come first: a contact's friction row finds its normal's state
             k = rc[i]
             if rf[i]:
                 x_t[k] = x[i]
@@ -728,10 +729,8 @@ def solve_small(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, i
             else:
                 x_n[k] = x[i]
             if c1 == 0:
-                if rf[i]:
-                    states_out[k] = (states_out[k] & NO_FRICTION_ROW) | (st[i] << _STATE_BITS)
-                else:
-                    states_out[k] = (states_out[k] & ~NO_FRICTION_ROW) | st[i]
+                states_out[k] = ((states_out[k] & NO_FRICTION_ROW) | (st[i] << _STATE_BITS)
+                                 if rf[i] else (NO_FRICTION_ROW << _STATE_BITS) | st[i])
     return res, work, codes
 
 
