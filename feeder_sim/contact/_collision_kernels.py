@@ -172,6 +172,14 @@ class NarrowPhaseTolerances(NamedTuple):
 @jit
 def narrow_phase(ar, w, nw, lo, hi, piece_start, piece_body, take, dyn, piece_width, coord,
                  radius, active, internal, nxt, prv, elen, tol):
+    """:func:`narrow_phase_inline` for Python callers."""
+    return narrow_phase_inline(ar, w, nw, lo, hi, piece_start, piece_body, take, dyn,
+                               piece_width, coord, radius, active, internal, nxt, prv, elen, tol)
+
+
+@inner(machine_inline=True)
+def narrow_phase_inline(ar, w, nw, lo, hi, piece_start, piece_body, take, dyn, piece_width,
+                        coord, radius, active, internal, nxt, prv, elen, tol):
     """Vertex-edge contacts of all piece pairs whose AABBs are within ``tol.bp_margin_m``
     (``tol`` a :class:`NarrowPhaseTolerances`).
 
@@ -248,6 +256,14 @@ def narrow_phase(ar, w, nw, lo, hi, piece_start, piece_body, take, dyn, piece_wi
 @jit
 def clean_contacts(ar, vert, edge, gap, t, cover_start, cover_lo, cover_hi, nxt, canon,
                    vbody, nw, n_vertices, n_bodies, param_tol, angle_tol):
+    """:func:`clean_contacts_inline` for Python callers."""
+    return clean_contacts_inline(ar, vert, edge, gap, t, cover_start, cover_lo, cover_hi, nxt,
+                                 canon, vbody, nw, n_vertices, n_bodies, param_tol, angle_tol)
+
+
+@inner(machine_inline=True)
+def clean_contacts_inline(ar, vert, edge, gap, t, cover_start, cover_lo, cover_hi, nxt, canon,
+                          vbody, nw, n_vertices, n_bodies, param_tol, angle_tol):
     """The clean-up of ``collision.find_contacts`` after the narrow phase: contacts on
     internal edge portions and one of each vertex-on-vertex pair dropped from the raw
     contacts, duplicates of one canonical vertex against parallel edges of one body merged

@@ -211,6 +211,9 @@ def assemble(W: np.ndarray, b_full: np.ndarray, friction: np.ndarray, mu_lo: np.
     problem = FrictionalLCP(A=A, b=b_full[rows], normal_of=normal_of, mu_lo=lo, mu_hi=hi)
     return Assembly(problem, P, friction, box)
 
+# solver messages a run keeps (the first ones: the counts go on)
+MAX_MESSAGES = 20
+
 
 @dataclass
 class SolverStats:
@@ -253,7 +256,7 @@ class SolverStats:
         self.frictionless_answers += result.method == 'frictionless'
         self.unconverged += not result.converged
         self.max_residual = max(self.max_residual, float(result.residual))
-        if result.message and len(self.messages) < 20:
+        if result.message and len(self.messages) < MAX_MESSAGES:
             self.messages.append(result.message)
 
     def inexact(self) -> dict[str, str]:

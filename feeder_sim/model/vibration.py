@@ -42,7 +42,7 @@ def drive_value_problem(name: str, value: float) -> str | None:
     return None
 
 
-@dataclass
+@dataclass(frozen=True)
 class _Segment:
     start_s: float
     amplitude_m: float
@@ -166,7 +166,12 @@ class DriveSegments(NamedTuple):
 
 def drive_segments(drives: Sequence[Drive], base_m: np.ndarray, t: float) -> DriveSegments:
     """The drive table of ``drives`` (bodies at ``base_m``, (nd, 2)) from time ``t`` on (s)."""
-    segs = [drive.segment(t) for drive in drives]
+    return drive_table(drives, [drive.segment(t) for drive in drives], base_m)
+
+
+def drive_table(drives: Sequence[Drive], segs: Sequence[_Segment],
+                base_m: np.ndarray) -> DriveSegments:
+    """The drive table of ``drives`` (bodies at ``base_m``, (nd, 2)) on segments ``segs``."""
     nd = len(segs)
     return DriveSegments(
         np.array([drive.direction for drive in drives], dtype=float).reshape(nd, 2),

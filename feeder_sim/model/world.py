@@ -12,7 +12,7 @@ the body frame of the scene file, related by ``origin = com - R(angle) @ com_loc
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 import math
 
@@ -22,7 +22,7 @@ from feeder_sim.model.geometry import mass_properties
 from feeder_sim.model.scene import BODY_TYPES as scene_body_types
 from feeder_sim.model.scene import Scene
 from feeder_sim.model.shapes import ShapeSet
-from feeder_sim.model.vibration import Drive, drive_segments, DriveSegments
+from feeder_sim.model.vibration import Drive, drive_table, DriveSegments
 
 # body kinds, as codes in World.body_type (the names and their order are scene.BODY_TYPES')
 BODY_TYPES = {name: code for code, name in enumerate(scene_body_types)}
@@ -97,6 +97,10 @@ class World:
     base_angle: np.ndarray     # (n,)
     drives: tuple[Drive | None, ...]
     track_index: int | None    # body whose x axis is "along the track" in reports
+    # the last drive table and the segments it was built from: a compiled stepper asks for it
+    # at every call, and segments only change at a command
+    _drive_memo: tuple[tuple, DriveSegments] | None = field(
+        default=None, init=False, repr=False, compare=False)
 
     @classmethod
     def from_scene(cls, scene: Scene) -> World:
@@ -162,8 +166,14 @@ class World:
 
     def drive_segments(self, t: float) -> DriveSegments:
         """The drive table from time ``t`` (s) on, one row per body of :attr:`driven`."""
-        driven = self.driven
-        return drive_segments([self.drives[i] for i in driven], self.base_position[driven], t)
+        drives = [self.drives[i] for i in self.driven]
+        segs = tuple(drive.segment(t) for drive in drives)
+        memo = self._drive_memo
+        if memo is None or len(memo[0]) != len(segs) or any(
+                a is not b for a, b in zip(memo[0], segs, strict=True)):
+            memo = self._drive_memo = (segs, drive_table(drives, segs,
+                                                         self.base_position[self.driven]))
+        return memo[1]
 
     @cached_property
     def radius(self) -> np.ndarray:

@@ -52,8 +52,8 @@ from feeder_sim._jit import inner, jit
 from feeder_sim.contact._collision_kernels import (
     _argsort,
     _where,
-    clean_contacts,
-    narrow_phase,
+    clean_contacts_inline,
+    narrow_phase_inline,
     NarrowPhaseTolerances,
 )
 from feeder_sim.contact._island_kernels import (
@@ -319,7 +319,7 @@ def _find_contacts(ar, shapes, position, angle, dynamic, margin, narrow):
     coord = empty_f(ar, n)
     for i in range(n):
         coord[i] = max(abs(position[i, 0]), abs(position[i, 1]))
-    vert, edge, gap, t, _ = narrow_phase(
+    vert, edge, gap, t, _ = narrow_phase_inline(
         ar, w, nw, lo, hi, shapes.piece_start, shapes.piece_body, take, dyn, shapes.piece_width,
         coord, shapes.piece_radius, shapes.vertex_active, shapes.edge_internal,
         shapes.next_vertex, shapes.prev_vertex, shapes.edge_length,
@@ -328,7 +328,7 @@ def _find_contacts(ar, shapes, position, angle, dynamic, margin, narrow):
                               narrow.angle_tol))
     if vert.shape[0] == 0:
         return none_i, none_i, none_f, none_f, w, nw, True
-    o = clean_contacts(ar, vert, edge, gap, t, shapes.cover_start, shapes.cover_lo,
+    o = clean_contacts_inline(ar, vert, edge, gap, t, shapes.cover_start, shapes.cover_lo,
                        shapes.cover_hi, shapes.next_vertex, shapes.vertex_canon,
                        shapes.vertex_body, nw, nv, shapes.n_piece_bodies, narrow.param_tol,
                        narrow.angle_tol)

@@ -111,7 +111,7 @@ import numpy as np
 from feeder_sim._jit import inner, jit
 from feeder_sim.contact.candidates import corner_piece_candidates
 from feeder_sim.contact.collision import Contacts
-from feeder_sim.contact.dynamics import contact_set
+from feeder_sim.contact.dynamics import contact_set, MAX_MESSAGES
 from feeder_sim.contact.routh import (
     collide,
     CollisionResult,
@@ -664,7 +664,7 @@ class ImpulseBased(StepperBase):
                                (_C_TOI_GIVE_UP, _F_GIVE_UP_T, 'time-of-impact search gave up')):
             if d[k]:
                 stats.fallbacks += int(d[k])
-                if len(stats.messages) < 20:
+                if len(stats.messages) < MAX_MESSAGES:
                     stats.messages.append(f'impulse_based: {what} {int(d[k])} time(s), last at '
                                           f't = {self._fout[t_idx]:.6f} s')
 

@@ -123,6 +123,7 @@ from feeder_sim.contact.dynamics import (
     friction_rows,
     island_jacobian,
     islands,
+    MAX_MESSAGES,
     second_pass,
     SolverStats,
 )
@@ -303,6 +304,10 @@ class TimeStepper(StepperBase):
         self._geo: _IslandGeometry | None = None
         self._compiled = self._compiled_world()
         self._reports = TK.new_reports(256)
+        # the compiled step's counters, maxima and messages, reused from call to call
+        self._io = (np.zeros(len(TK.INT_COUNTERS), np.int64), np.zeros(len(TK.FLOAT_MAXIMA)),
+                    np.zeros((MAX_MESSAGES, 4)), np.zeros(1, np.int64))
+        self._no_approach = TK.no_approach()
         # the compiled step's scratch (two: a step's warm-start impulses live in its arena
         # while the next step runs in the other); grown when a step needed more
         size = _ARENA_BYTES + _ARENA_BYTES_PER_VERTEX * len(self.world.shapes.vertices)
@@ -405,30 +410,33 @@ class TimeStepper(StepperBase):
         """Steps of ``_time_stepping_kernels.advance`` towards ``t_end``; their contacts are
         appended to ``reports`` as one entry (rows in step order). Returns the kernel's code."""
         stats, rep = self.stats, self._reports
+        ints, floats, msgs, n_msgs = self._io
         rep.counts[:] = 0
-        ints = np.zeros(len(TK.INT_COUNTERS), np.int64)
-        floats = np.array([getattr(stats, f) for f in TK.FLOAT_MAXIMA], dtype=float)
-        msgs = np.zeros((max(0, 20 - len(stats.messages)), 4))
-        n_msgs = np.zeros(1, np.int64)
+        ints[:] = 0
+        for k, name in enumerate(TK.FLOAT_MAXIMA):
+            floats[k] = getattr(stats, name)
+        n_msgs[0] = 0
         warm = TK.Warm(self._warm.keys, self._warm.p_n, self._warm.p_t, self._warm.state)
         held = self._approach
-        approach = TK.no_approach() if not held else TK.Approach(
+        approach = self._no_approach if not held else TK.Approach(
             np.array([p[0] for p in held], np.int64), np.array([p[1] for p in held], np.int64),
             np.concatenate(list(held.values())))
         bodies, shapes = self._compiled
-        settings = self._compiled_settings()
         code, t, warm, approach = TK.advance(
             state.t, t_end, state.position, state.angle, state.velocity, state.omega, bodies,
-            shapes, self.world.drive_segments(state.t), settings, warm, approach, ints, floats,
-            rep, msgs, n_msgs, (self._arenas[0].state, self._arenas[1].state))
-        self._approach = {(lo, hi): approach.vel[2 * p:2 * p + 2] for p, (lo, hi) in
-                          enumerate(zip(approach.lo.tolist(), approach.hi.tolist(),
-                                        strict=True))}
-        if any(arena.state[SHORT] for arena in self._arenas):
+            shapes, self.world.drive_segments(state.t), self._compiled_settings(), warm,
+            approach, ints, floats, rep, msgs[:max(0, len(msgs) - len(stats.messages))],
+            n_msgs, (self._arenas[0].state, self._arenas[1].state))
+        self._approach = {} if not approach.lo.size else {
+            (lo, hi): approach.vel[2 * p:2 * p + 2] for p, (lo, hi) in
+            enumerate(zip(approach.lo.tolist(), approach.hi.tolist(), strict=True))}
+        if self._arenas[0].state[SHORT] or self._arenas[1].state[SHORT]:
             self._arenas = tuple(new_arena(grown_capacity(a)) for a in self._arenas)
         state.t = t
         self._warm.keys, self._warm.p_n, self._warm.p_t, self._warm.state = warm
         for name, value in zip(TK.INT_COUNTERS, ints.tolist(), strict=True):
+            if not value:
+                continue
             if name == 'max_lcp_rows':
                 stats.max_lcp_rows = max(stats.max_lcp_rows, value)
             else:
@@ -877,7 +885,7 @@ class TimeStepper(StepperBase):
                 failed |= bad
                 for i in np.flatnonzero(bad):
                     stats.fallbacks += 1
-                    if len(stats.messages) < 20:
+                    if len(stats.messages) < MAX_MESSAGES:
                         stats.messages.append(lcp.dantzig_message(res[i], codes[i]))
             if large.any():
                 res, vres, work = K.solve_pgs(heap_state(), large, *data, lo, hi, x_n, x_t,
@@ -889,7 +897,7 @@ class TimeStepper(StepperBase):
                 stats.max_pgs_velocity_residual_mps = max(
                     stats.max_pgs_velocity_residual_mps, float(vres[large].max()))
                 for i in np.flatnonzero(large)[~conv]:
-                    if len(stats.messages) < 20:
+                    if len(stats.messages) < MAX_MESSAGES:
                         stats.messages.append(
                             f'pgs: velocity residual {vres[i]:.3g} m/s (lcp residual '
                             f'{res[i]:.3g}) after {work[i]} sweeps ({rows[i]} rows)')
