@@ -76,13 +76,20 @@ def test_contact_rows_kernel_gives_the_numpy_bits(materials, friction_impulse):
     assert len(checked) > 100 and sum(checked) > 2000
 
 
-def test_compiled_projection_matches_lcp_solve():
+@pytest.mark.parametrize('reuse', [False, True])
+def test_compiled_projection_matches_lcp_solve(reuse):
+    # From scratch, the compiled projection solves lcp.solve's problems with its pivots; on
+    # the row states of the contacts' last projection (reuse_row_states) it solves the same
+    # problems to the same answers with fewer pivots (measured: 6 126 against 6 579 in this
+    # settling pile, whose islands change from step to step).
     sim = pile(30)
     stepper = sim._stepper
+    stepper.settings.reuse_row_states = reuse
     compiled = stepper._project
     st = sim.stats
     worst = [0.0, 0.0]
     projected = []
+    pivots = [0, 0]         # compiled, reference
 
     def project(cs, state, mask):
         w = sim.world
@@ -99,8 +106,12 @@ def test_compiled_projection_matches_lcp_solve():
         mid = (st.lcp_solves, st.lcp_rows, st.pivots, st.fallbacks, st.unconverged)
         compiled(cs, state, mask)
         after = (st.lcp_solves, st.lcp_rows, st.pivots, st.fallbacks, st.unconverged)
-        # the same problems, solved with the same pivots
-        assert np.subtract(mid, before).tolist() == np.subtract(after, mid).tolist()
+        want, got = np.subtract(mid, before), np.subtract(after, mid)
+        # the same problems, without a fallback
+        assert got[[0, 1, 3, 4]].tolist() == want[[0, 1, 3, 4]].tolist()
+        assert got[2] == want[2] if not reuse else got[2] <= want[2]
+        pivots[0] += int(got[2])
+        pivots[1] += int(want[2])
         if after != mid:
             projected.append(after[0] - mid[0])
         worst[0] = max(worst[0], float(np.abs(state.position - ref.position).max()))
@@ -110,6 +121,7 @@ def test_compiled_projection_matches_lcp_solve():
     sim.advance(0.25)
     assert sum(projected) > 50              # islands projected
     assert worst[0] <= 1e-12 and worst[1] <= 1e-12
+    assert pivots[0] < pivots[1] if reuse else pivots[0] == pivots[1]
 
 
 def pgs_reference(select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, b_n,

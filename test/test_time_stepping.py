@@ -221,11 +221,12 @@ def test_a_hopping_pile_warm_starts_from_the_last_step_with_contacts():
 @pytest.mark.parametrize('gamma', [0.5, 1.5])
 def test_row_states_of_the_step_before_give_dantzigs_answer_without_its_pivots(gamma, dt):
     # One box on a track vibrating at 50 Hz, sliding on it (Gamma 0.5) or hopping (1.5), for
-    # 0.5 s: solving each small island first in the row states of the step before
-    # (reuse_row_states) must give Baraff-Dantzig's answer from scratch to round-off: states
-    # within 1e-15 m and m/s (measured: 3.5e-18 m at most), with at most half of its pivots
-    # (measured: 389 against 20 086 sliding and 2 117 against 10 106 hopping at dt 1e-4,
-    # 453 against 2 055 and 344 against 915 at dt 1e-3).
+    # 0.5 s: solving each small island first in the row states of the step before, and each
+    # position projection in those of the contacts' last projection (reuse_row_states), must
+    # give Baraff-Dantzig's answers from scratch to round-off: states within 1e-15 m, m/s and
+    # rad (measured: 3.5e-18 m, 2.4e-16 m/s, 3.7e-17 rad at most), with at most half of its
+    # pivots (measured: 275 against 20 086 sliding and 169 against 10 106 hopping at dt 1e-4,
+    # 421 against 2 055 and 196 against 915 at dt 1e-3).
     runs = {}
     for reuse in (True, False):
         sim = Simulator(build(conveyor(psi=math.radians(20.0), mu=0.5, theta=0.0, gamma=gamma,

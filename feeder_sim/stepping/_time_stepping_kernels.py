@@ -149,12 +149,14 @@ class StepSettings(NamedTuple):
 
 class Warm(NamedTuple):
     """Impulses of the previous step by feature key ``vertex * n_vertices + edge``, sorted,
-    and the row states each contact's small-island solve ended in (``solve_small``)."""
+    and the row states each contact's small-island solve ended in (``solve_small``): its
+    velocity solve's and the last position projection's it took part in (-1: none)."""
 
     keys: np.ndarray
     p_n: np.ndarray
     p_t: np.ndarray
     state: np.ndarray
+    projection_state: np.ndarray
 
 
 class Approach(NamedTuple):
@@ -767,14 +769,20 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
             new_approach = _held_back(ar, approach, body_a, body_b, held, vel, om)
         else:
             new_approach = Approach(empty_i(ar, 0), empty_i(ar, 0), empty_f2(ar, 0, 3))
+        # a contact carries its projection's row states on until it is projected again
+        at = _warm_find(ar, warm, keys)
+        proj_state = full_i(ar, m, -1)
+        for q in range(m):
+            if at[q] >= 0:
+                proj_state[q] = warm.projection_state[at[q]]
         o = _argsort(ar, keys)
         new_warm = Warm(gather(ar, keys, o), gather(ar, p_n, o), gather(ar, p_t, o),
-                        gather(ar, p_state, o))
+                        gather(ar, p_state, o), gather(ar, proj_state, o))
     else:
         # carried on unchanged, into this step's arena: the one they live in is reset by the
         # step after next
         new_warm = Warm(copy_i(ar, warm.keys), copy_f(ar, warm.p_n), copy_f(ar, warm.p_t),
-                        copy_i(ar, warm.state))
+                        copy_i(ar, warm.state), copy_i(ar, warm.projection_state))
         new_approach = Approach(copy_i(ar, approach.lo), copy_i(ar, approach.hi),
                                 copy_f2(ar, approach.vel))
 
@@ -807,6 +815,7 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
             gap_end[idx[q]] = got[q]
             deep_any = deep_any or got[q] < -st.projection_slop_m
         if deep_any:
+            p_vert, p_edge = vert, edge
             if n_spare:
                 # TimeStepper._with_spare: the contacts left out of the velocity solve too
                 kk = m + n_spare
@@ -843,6 +852,7 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
                 for q in range(idx.shape[0]):
                     gap_end[idx[q]] = got[q]
                 order, starts, isl_bodies, body_starts = island_groups(ar, n, dynamic, c_a, c_b)
+                p_vert, p_edge = c_vert, c_edge
                 a_o, b_o = gather(ar, c_a, order), gather(ar, c_b, order)
                 normal_o = gather_rows(ar, c_normal, order)
                 tangent_o = gather_rows(ar, c_tangent, order)
@@ -863,14 +873,28 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
                     sel[i] = sel[i] or deep_o[q]
             zeros = zeros_f(ar, kk)
             x_n = zeros_f(ar, kk)
+            # the row states of the contacts' last projection (TimeStepper._project)
+            keys_o = empty_i(ar, kk)
+            for q in range(kk):
+                keys_o[q] = p_vert[order[q]] * nv + p_edge[order[q]]
+            at = _warm_find(ar, new_warm, keys_o)
+            states_in = full_i(ar, kk, -1)
+            if st.reuse_row_states:
+                for q in range(kk):
+                    if at[q] >= 0:
+                        states_in[q] = new_warm.projection_state[at[q]]
+            states_out = empty_i(ar, kk)
             res, work, codes = solve_small(ar, sel, starts, a_o, b_o, normal_o, tangent_o,
                                            r_a_o, r_b_o, bodies.inv_mass, bodies.inv_inertia,
                                            rhs, zeros, full_b(ar, kk, False), zeros, zeros,
-                                           x_n, zeros_f(ar, kk), zeros_f(ar, kk),
-                                           full_i(ar, kk, -1), empty_i(ar, kk))
+                                           x_n, zeros_f(ar, kk), zeros_f(ar, kk), states_in,
+                                           states_out)
             for i in range(n_isl):
                 if sel[i] and res[i] > st.lcp_tol:
                     return REFERENCE, warm, approach
+                for q in range(starts[i], starts[i + 1]):
+                    if sel[i] and at[q] >= 0:
+                        new_warm.projection_state[at[q]] = states_out[q]
             _record_batch(step_ints, step_floats, sel, lens, work, res, sel)
             dv = zeros_f2(ar, n, 3)
             apply_impulses(ar, dv, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o,
@@ -952,7 +976,8 @@ def advance(t, t_end, pos, ang, vel, om, bodies, shapes, drives, st, warm, appro
     # arrays until the call returns
     pos, ang, vel, om = borrow(pos), borrow(ang), borrow(vel), borrow(om)
     ints, floats, msgs, n_msgs = borrow(ints), borrow(floats), borrow(msgs), borrow(n_msgs)
-    warm = Warm(borrow(warm.keys), borrow(warm.p_n), borrow(warm.p_t), borrow(warm.state))
+    warm = Warm(borrow(warm.keys), borrow(warm.p_n), borrow(warm.p_t), borrow(warm.state),
+                borrow(warm.projection_state))
     approach = Approach(borrow(approach.lo), borrow(approach.hi), borrow(approach.vel))
     bodies = StepBodies(
         borrow(bodies.dynamic), borrow(bodies.dyn_idx), borrow(bodies.driven_idx),
@@ -987,5 +1012,6 @@ def advance(t, t_end, pos, ang, vel, om, bodies, shapes, drives, st, warm, appro
             break
         t = t + step
         n += 1
-    return (code, t, Warm(warm.keys.copy(), warm.p_n.copy(), warm.p_t.copy(), warm.state.copy()),
+    return (code, t, Warm(warm.keys.copy(), warm.p_n.copy(), warm.p_t.copy(), warm.state.copy(),
+                          warm.projection_state.copy()),
             Approach(approach.lo.copy(), approach.hi.copy(), approach.vel.copy()))

@@ -52,8 +52,10 @@ island's problem is the ``dynamics.assemble`` layout (normals, then the friction
   states in one piece (``_lcp_kernels.solve_with_states``, the Dantzig pass's final polish;
   ``reuse_row_states``) and that answer is taken if its ``lcp.residual`` is <= 1e-12: a part
   resting or sliding as it did costs one small solve instead of its pivots (one part
-  conveying at dt = 1e-4: 2.0 -> 0.4 pivots per step). It is an answer of the same LCP;
-  where the LCP has one, Dantzig's to round-off;
+  conveying at dt = 1e-4: 2.0 -> 0.4 pivots per step). The position projection's islands
+  (normal rows only) likewise start from the row states their contacts ended their last
+  projection in (one part hopping at dt = 1e-4: 0.43 -> 0.04 pivots per step in all). It
+  is an answer of the same LCP; where the LCP has one, Dantzig's to round-off;
 * larger islands (piles): projected Gauss-Seidel in velocity form (``_island_kernels.solve_pgs``,
   SOR factor ``pgs_omega``), warm-started with the previous step's impulses of the same
   vertex-edge features, each normal followed by its friction row. Pivoting does not scale:
@@ -161,8 +163,9 @@ class TimeStepSettings:
     slip_tol_mps: float = 1e-9     # |v_T| below which a contact is sticking
     lcp_tol: float = 1e-9          # lcp.residual the Dantzig path must reach
     reuse_row_states: bool = True  # a small island whose contacts all come with the row
-    #                                states of the step before is solved in those states in
-    #                                one piece when that solves it (residual <= 1e-12);
+    #                                states of the step before (the projection: of their
+    #                                last projection) is solved in those states in one
+    #                                piece when that solves it (residual <= 1e-12);
     #                                False: Baraff-Dantzig from scratch every step
     direct_max_rows: int = 48      # islands with more LCP rows go to projected Gauss-Seidel
     pgs_tol_mps: float = 1e-3      # velocity residual (m/s) the PGS path must reach
@@ -212,8 +215,9 @@ def solve_impulses(world: World, cs: ContactSet, bodies: np.ndarray, b_n: np.nda
 
 class _Warm:
     """Impulses of the previous step by contact feature (vertex, edge), to warm-start PGS,
-    and the row states of each contact's small-island answer, to solve its island again in
-    one piece (``_island_kernels.solve_small``; -1: none)."""
+    and the row states of each contact's small-island answers, to solve its island again in
+    one piece (``_island_kernels.solve_small``; -1: none): its velocity solve's, and its last
+    position projection's (carried on while the contact is not projected)."""
 
     def __init__(self, n_vertices: int) -> None:
         self.n_vertices = n_vertices
@@ -221,23 +225,42 @@ class _Warm:
         self.p_n = np.zeros(0)
         self.p_t = np.zeros(0)
         self.state = np.zeros(0, np.int64)
+        self.projection_state = np.zeros(0, np.int64)
 
     def key(self, contacts) -> np.ndarray:
         return contacts.vertex_a.astype(np.int64) * self.n_vertices + contacts.edge_b
+
+    def _find(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where these features are in the table, and which are there at all."""
+        pos = np.minimum(np.searchsorted(self.keys, keys), max(self.keys.size - 1, 0))
+        return pos, (self.keys[pos] == keys if self.keys.size else np.zeros(keys.size, bool))
 
     def lookup(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Previous impulses and row states of these features (0 and -1 where one is new)."""
         if not self.keys.size:
             return np.zeros(keys.size), np.zeros(keys.size), np.full(keys.size, -1)
-        pos = np.minimum(np.searchsorted(self.keys, keys), self.keys.size - 1)
-        hit = self.keys[pos] == keys
+        pos, hit = self._find(keys)
         return (np.where(hit, self.p_n[pos], 0.0), np.where(hit, self.p_t[pos], 0.0),
                 np.where(hit, self.state[pos], -1))
 
+    def projection_states(self, keys: np.ndarray) -> np.ndarray:
+        """The row states of these features' last projection (-1: none)."""
+        if not self.keys.size:
+            return np.full(keys.size, -1)
+        pos, hit = self._find(keys)
+        return np.where(hit, self.projection_state[pos], -1)
+
     def store(self, keys: np.ndarray, p_n: np.ndarray, p_t: np.ndarray,
               state: np.ndarray) -> None:
+        projection = self.projection_states(keys)
         o = np.argsort(keys, kind='stable')
         self.keys, self.p_n, self.p_t, self.state = keys[o], p_n[o], p_t[o], state[o]
+        self.projection_state = projection[o]
+
+    def store_projection(self, keys: np.ndarray, states: np.ndarray) -> None:
+        """The row states a projection ended in, of those of ``keys`` in the table."""
+        pos, hit = self._find(keys)
+        self.projection_state[pos[hit]] = states[hit]
 
 
 # Gathering rows of (k, 2) arrays by an index array: ``ndarray.take(i, axis=0)`` copies the same
@@ -416,7 +439,8 @@ class TimeStepper(StepperBase):
         for k, name in enumerate(TK.FLOAT_MAXIMA):
             floats[k] = getattr(stats, name)
         n_msgs[0] = 0
-        warm = TK.Warm(self._warm.keys, self._warm.p_n, self._warm.p_t, self._warm.state)
+        warm = TK.Warm(self._warm.keys, self._warm.p_n, self._warm.p_t, self._warm.state,
+                       self._warm.projection_state)
         held = self._approach
         approach = self._no_approach if not held else TK.Approach(
             np.array([p[0] for p in held], np.int64), np.array([p[1] for p in held], np.int64),
@@ -433,7 +457,8 @@ class TimeStepper(StepperBase):
         if self._arenas[0].state[SHORT] or self._arenas[1].state[SHORT]:
             self._arenas = tuple(new_arena(grown_capacity(a)) for a in self._arenas)
         state.t = t
-        self._warm.keys, self._warm.p_n, self._warm.p_t, self._warm.state = warm
+        (self._warm.keys, self._warm.p_n, self._warm.p_t, self._warm.state,
+         self._warm.projection_state) = warm
         for name, value in zip(TK.INT_COUNTERS, ints.tolist(), strict=True):
             if not value:
                 continue
@@ -558,12 +583,19 @@ class TimeStepper(StepperBase):
         sel = np.logical_or.reduceat(deep[order], starts[:-1])
         zeros = np.zeros(k)
         x_n = np.zeros(k)
+        # each island is solved first in the row states of its contacts' last projection
+        keys = self._warm.key(cs.contacts)[order]
+        states_in = (self._warm.projection_states(keys) if st.reuse_row_states
+                     else np.full(k, -1))
+        states_out = np.full(k, -1)
         res, work, codes = K.solve_small(
             heap_state(), sel, *geo.kernel_args, gap[order] + st.projection_slop_m, zeros,
-            np.zeros(k, bool), zeros, zeros, x_n, np.zeros(k), np.zeros(k), np.full(k, -1),
-            np.empty(k, np.int64))
+            np.zeros(k, bool), zeros, zeros, x_n, np.zeros(k), np.zeros(k), states_in,
+            states_out)
         bad = sel & (res > st.lcp_tol)
         ok = sel & ~bad
+        taken = np.repeat(ok, np.diff(starts))
+        self._warm.store_projection(keys[taken], states_out[taken])
         self.stats.record_batch((starts[1:] - starts[:-1])[ok], work[ok], res[ok],
                                 np.ones(int(ok.sum()), bool), 'dantzig')
         if bad.any():
