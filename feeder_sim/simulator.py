@@ -18,6 +18,7 @@ import os
 
 import numpy as np
 
+from feeder_sim.contact._feature_kernels import sum_by_feature
 from feeder_sim.contact.dynamics import SolverStats
 from feeder_sim.model.scene import (
     load_scene,
@@ -91,12 +92,12 @@ class _ImpulseLog:
     """Sums impulses per vertex-edge feature between two reports.
 
     A pile has hundreds of contacts per step, so nothing is done per contact in Python:
-    ``add`` keeps each step's arrays and they are reduced by feature with numpy (a stable sort
-    by feature key) every ``_REDUCE_STEPS`` steps, which bounds the memory when nobody takes
-    reports, and in ``take``. The report is what summing step by step gives: features in order
-    of first appearance since the previous report (deterministic, so recordings are too), the
-    latest point and normal, impulses summed in step order (``np.add.at`` from -0.0, so even
-    the bits and the sign of a zero match a running ``+=``).
+    ``add`` keeps each step's arrays and they are reduced by feature (compiled:
+    ``contact._feature_kernels.sum_by_feature``) every ``_REDUCE_STEPS`` steps, which bounds
+    the memory when nobody takes reports, and in ``take``. The report is what summing step by
+    step gives: features in order of first appearance since the previous report
+    (deterministic, so recordings are too), the latest point and normal, impulses summed in
+    step order from -0.0, so even the bits and the sign of a zero match a running ``+=``.
     """
 
     _REDUCE_STEPS = 64
@@ -123,32 +124,8 @@ class _ImpulseLog:
         if not self._steps:
             return
         self._steps = 0
-        key, point, normal, p_n, p_t, body_a, body_b = (
-            np.concatenate(f) for f in zip(*self._parts, strict=True))
-        o = np.argsort(key, kind='stable')
-        ks = key[o]
-        head = np.empty(len(ks), bool)
-        head[0] = True
-        np.not_equal(ks[1:], ks[:-1], out=head[1:])
-        starts = np.flatnonzero(head)
-        first = o[starts]                                   # first row of each feature
-        last = o[np.append(starts[1:], len(ks)) - 1]         # latest row of each feature
-        # features numbered in order of first appearance
-        rank = np.empty(len(starts), np.int64)
-        by_first = np.argsort(first)
-        rank[by_first] = np.arange(len(starts))
-        group = np.empty(len(key), np.int64)
-        group[o] = rank[np.cumsum(head) - 1]
-        # ufunc.at adds in row order, i.e. step order, like a running sum
-        sum_n = np.full(len(starts), -0.0)
-        sum_t = np.full(len(starts), -0.0)
-        np.add.at(sum_n, group, p_n)
-        np.add.at(sum_t, group, p_t)
-        latest = last[by_first]
-        # (ndarray.take: fancy indexing of (k, 2) rows is ~10x slower)
-        self._parts = [(key[first[by_first]], point.take(latest, axis=0),
-                        normal.take(latest, axis=0), sum_n, sum_t, body_a[latest],
-                        body_b[latest])]
+        self._parts = [sum_by_feature(*(np.concatenate(f)
+                                        for f in zip(*self._parts, strict=True)))]
 
     def take(self) -> ContactReport:
         self._reduce()

@@ -11,11 +11,14 @@ against a running sum per feature.
 
 import math
 
+from hypothesis import given, settings
+from hypothesis import strategies as hs
 import numpy as np
 import pytest
 
 from feeder_sim._arena import heap_state
 from feeder_sim.contact import _island_kernels as K
+from feeder_sim.contact._feature_kernels import sum_by_feature
 from feeder_sim.contact.collision import evaluate_gaps
 from feeder_sim.model.builders import build, conveyor
 from feeder_sim.simulator import _ImpulseLog, ContactReport, Simulator
@@ -307,6 +310,34 @@ def test_impulse_log_reports_the_running_sums(reduce_steps):
             rows += got.n
     assert reports >= 5 and rows > 200
     assert log.take().n == ref.take().n
+
+
+@settings(max_examples=60, deadline=None)
+@given(hs.lists(hs.tuples(hs.sampled_from([0, 1, 7, 2**32, 2**32 + 1, 2**40 - 3, 2**62, 5 << 32]),
+                          hs.sampled_from([0.0, -0.0, 1e-300, 0.1, -0.3, 2.5e3])),
+                min_size=1, max_size=400))
+def test_features_are_summed_like_a_running_sum(rows):
+    # sum_by_feature, the impulse log's reduction, on keys chosen to share hash slots (equal
+    # low or high bits) and impulses whose order of summation shows in the last bits, and
+    # with signed zeros: the same bits as adding row by row from -0.0 in a dict, features in
+    # order of first appearance.
+    key = np.array([k for k, _ in rows], np.int64)
+    p = np.array([v for _, v in rows])
+    row_id = np.arange(len(rows))
+    point = np.stack([row_id * 1.0, -row_id * 1.0], axis=1)
+    want: dict[int, list] = {}
+    for i, k in enumerate(key.tolist()):
+        entry = want.setdefault(k, [-0.0, -0.0, i])
+        entry[0] += p[i]
+        entry[1] += 2.0 * p[i]
+        entry[2] = i
+    got = sum_by_feature(key, point, -point, p, 2.0 * p, row_id, row_id + 1)
+    assert got[0].tolist() == list(want)
+    assert same_bits(got[3], np.array([e[0] for e in want.values()]))
+    assert same_bits(got[4], np.array([e[1] for e in want.values()]))
+    latest = np.array([e[2] for e in want.values()])
+    assert got[5].tolist() == latest.tolist() and got[6].tolist() == (latest + 1).tolist()
+    assert same_bits(got[1], point[latest]) and same_bits(got[2], -point[latest])
 
 
 def test_a_deep_wedge_in_a_pile_is_not_thrown_apart():
