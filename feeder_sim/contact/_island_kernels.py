@@ -56,6 +56,12 @@ def _find(parent: np.ndarray, i: int) -> int:
 
 @jit
 def island_groups(ar, n_bodies, dynamic, a, b):
+    """:func:`island_groups_inline` for Python callers."""
+    return island_groups_inline(ar, n_bodies, dynamic, a, b)
+
+
+@inner(machine_inline=True)
+def island_groups_inline(ar, n_bodies, dynamic, a, b):
     """Islands of dynamic bodies joined by contacts (static / kinematic bodies never join).
 
     Returns ``(order, starts, bodies, body_starts)``: island i owns the contacts
@@ -158,6 +164,14 @@ def _rows(ar, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia):
 
 @jit
 def apply_impulses(ar, dv, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, p_n, p_t):
+    """:func:`apply_impulses_inline` for Python callers."""
+    return apply_impulses_inline(ar, dv, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia,
+                                 p_n, p_t)
+
+
+@inner(machine_inline=True)
+def apply_impulses_inline(ar, dv, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, p_n,
+                          p_t):
     """``dv[body] += M^-1 J^T p`` for contact impulses (p_n, p_t); dv is (n_bodies, 3).
 
     Summed like ``IslandJacobian.velocity_change`` (``inv_mass * (J.T @ impulse)``): per body
@@ -279,6 +293,12 @@ def contact_velocities(a, b, normal, r_a, r_b, velocity, omega):
 
 @jit
 def drift(idx, position, angle, velocity, omega, half_h, out_position, out_angle):
+    """:func:`drift_inline` for Python callers."""
+    return drift_inline(idx, position, angle, velocity, omega, half_h, out_position, out_angle)
+
+
+@inner(machine_inline=True)
+def drift_inline(idx, position, angle, velocity, omega, half_h, out_position, out_angle):
     """``out = position + half_h * velocity`` (and the same for the angles) for the bodies
     ``idx``: a half step of Moreau's midpoint scheme, with the bits of numpy's
     ``position[idx] + 0.5 * h * velocity[idx]`` (``half_h = 0.5 * h``)."""
@@ -291,6 +311,12 @@ def drift(idx, position, angle, velocity, omega, half_h, out_position, out_angle
 
 @jit
 def speed_bounds(velocity, omega, radius, dynamic):
+    """:func:`speed_bounds_inline` for Python callers."""
+    return speed_bounds_inline(velocity, omega, radius, dynamic)
+
+
+@inner(machine_inline=True)
+def speed_bounds_inline(velocity, omega, radius, dynamic):
     """The largest ``|v| + |omega| r`` (speed bound of a body's points) of the dynamic bodies
     and of the others, the largest ``omega^2 r`` of the dynamic bodies, and a bound on the
     speed at which points of two dynamic bodies close on each other (twice the largest
@@ -341,6 +367,16 @@ class RowSettings(NamedTuple):
 @jit
 def contact_rows(ar, a, b, point, normal, gap, order, starts, position, v_end, w_end, v_pre,
                  w_pre, mu_s_body, mu_d_body, e_body, piece_a, piece_b, piece_width, settings):
+    """:func:`contact_rows_inline` for Python callers."""
+    return contact_rows_inline(ar, a, b, point, normal, gap, order, starts, position, v_end,
+                               w_end, v_pre, w_pre, mu_s_body, mu_d_body, e_body, piece_a,
+                               piece_b, piece_width, settings)
+
+
+@inner(machine_inline=True)
+def contact_rows_inline(ar, a, b, point, normal, gap, order, starts, position, v_end, w_end,
+                        v_pre, w_pre, mu_s_body, mu_d_body, e_body, piece_a, piece_b,
+                        piece_width, settings):
     """The per-contact part of ``TimeStepper._contacts`` in one pass (the numpy expressions it
     replaces are quoted; same operations in the same order, so the same bits).
 
@@ -469,6 +505,14 @@ def contact_rows(ar, a, b, point, normal, gap, order, starts, position, v_end, w
 
 @jit
 def feature_gaps(ar, idx, vertex, edge, vertices, normals, vertex_body, position, cos, sin):
+    """:func:`feature_gaps_inline` for Python callers."""
+    return feature_gaps_inline(ar, idx, vertex, edge, vertices, normals, vertex_body, position,
+                               cos, sin)
+
+
+@inner(machine_inline=True)
+def feature_gaps_inline(ar, idx, vertex, edge, vertices, normals, vertex_body, position, cos,
+                        sin):
     """Gaps of the vertex-edge features of contacts ``idx`` at another configuration:
     ``collision.evaluate_gaps`` (its gap) with the same arithmetic, so the same bits; ``cos`` /
     ``sin`` of the body angles are numpy's. Used by the position projection, which needs the
@@ -673,6 +717,16 @@ STATES_TOL = 1e-12
 @jit
 def solve_small(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, b_n,
                 b_t, box, mu_lo, mu_hi, x_n, x_t, w_t, states_in, states_out):
+    """:func:`solve_small_inline` for Python callers."""
+    return solve_small_inline(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass,
+                              inv_inertia, b_n, b_t, box, mu_lo, mu_hi, x_n, x_t, w_t,
+                              states_in, states_out)
+
+
+@inner(machine_inline=True)
+def solve_small_inline(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass,
+                       inv_inertia, b_n, b_t, box, mu_lo, mu_hi, x_n, x_t, w_t, states_in,
+                       states_out):
     """The islands with ``select`` (contacts grouped by ``starts``, CSR) by Baraff-Dantzig
     (``dantzig``), from scratch, or in one solve where every contact of an island comes with
     the row states it ended the last step in (``states_in``, see ``_STATE_BITS``) and the

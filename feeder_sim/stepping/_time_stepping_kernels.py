@@ -21,6 +21,13 @@ which together took more than half of a free part's step (1.3 -> 0.6 us) and a s
 one part conveying at dt = 1e-4 (``benchmarks/throughput.py``: 3.7 -> 3.1 us per step).
 The price is a longer first compile of ``time_stepping`` (``benchmarks/compile.py``: 49 ->
 83 s on a 2-core machine); the default run (``event_driven``) does not compile this module.
+
+The kernels of the contact layer the step calls (``narrow_phase``, ``contact_rows``,
+``solve_small``, ...) it calls through their ``_inline`` twins, the same code that LLVM
+always inlines; Python callers keep the ``jit`` entry points. LLVM inlined the ``jit`` ones
+too, but only when they were compiled for this step: when the Python reference had compiled
+them first (the test suite, a reference step), the step was linked against them as calls and
+ran 5-8 % slower, from the same source, depending on which process filled the cache.
 """
 
 from __future__ import annotations
@@ -58,15 +65,15 @@ from feeder_sim.contact._collision_kernels import (
 )
 from feeder_sim.contact._island_kernels import (
     _contact_velocity,
-    apply_impulses,
-    contact_rows,
-    drift,
-    feature_gaps,
-    island_groups,
+    apply_impulses_inline,
+    contact_rows_inline,
+    drift_inline,
+    feature_gaps_inline,
+    island_groups_inline,
     RowSettings,
     solve_pgs,
-    solve_small,
-    speed_bounds,
+    solve_small_inline,
+    speed_bounds_inline,
 )
 from feeder_sim.model.vibration import DriveSegments, segment_motion
 
@@ -331,9 +338,9 @@ def _find_contacts(ar, shapes, position, angle, dynamic, margin, narrow):
     if vert.shape[0] == 0:
         return none_i, none_i, none_f, none_f, w, nw, True
     o = clean_contacts_inline(ar, vert, edge, gap, t, shapes.cover_start, shapes.cover_lo,
-                       shapes.cover_hi, shapes.next_vertex, shapes.vertex_canon,
-                       shapes.vertex_body, nw, nv, shapes.n_piece_bodies, narrow.param_tol,
-                       narrow.angle_tol)
+                              shapes.cover_hi, shapes.next_vertex, shapes.vertex_canon,
+                              shapes.vertex_body, nw, nv, shapes.n_piece_bodies,
+                              narrow.param_tol, narrow.angle_tol)
     return (gather(ar, vert, o), gather(ar, edge, o), gather(ar, gap, o), gather(ar, t, o), w, nw,
             True)
 
@@ -442,9 +449,9 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
     ones = full_b(ar, n_isl, True)
     for again in (True, False):
         if small.any():
-            res, work, codes = solve_small(ar, small, starts, a, b, normal, tangent, r_a, r_b,
-                                           bodies.inv_mass, bodies.inv_inertia, b_n, b_t, box,
-                                           lo, hi, x_n, x_t, v_t_new, states_in, states)
+            res, work, codes = solve_small_inline(
+                ar, small, starts, a, b, normal, tangent, r_a, r_b, bodies.inv_mass,
+                bodies.inv_inertia, b_n, b_t, box, lo, hi, x_n, x_t, v_t_new, states_in, states)
             for i in range(n_isl):
                 if small[i] and res[i] > st.lcp_tol:
                     return x_n, x_t, states, False
@@ -576,7 +583,7 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
     mid_pos = copy_f2(ar, pos)
     mid_ang = copy_f(ar, ang)
     mid_vel = copy_f2(ar, vel)
-    drift(dyn_idx, pos, ang, vel, om, half, mid_pos, mid_ang)
+    drift_inline(dyn_idx, pos, ang, vel, om, half, mid_pos, mid_ang)
     _prescribed(t0 + 0.5 * h, drives, bodies.driven_idx, mid_pos, mid_vel)
     # free end-of-step velocities; driven bodies' positions and velocities at t0 + h
     end_pos = copy_f2(ar, mid_pos)
@@ -589,7 +596,7 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
     _prescribed(t0 + h, drives, bodies.driven_idx, end_pos, end_vel)
 
     # TimeStepper.margin
-    v_max, v_kin, spin, closing = speed_bounds(vel, om, bodies.radius_m, dynamic)
+    v_max, v_kin, spin, closing = speed_bounds_inline(vel, om, bodies.radius_m, dynamic)
     for row in range(bodies.driven_idx.shape[0]):
         v_kin = _larger(v_kin, drives.omega_rad_s[row] * drives.amplitude_m[row] * 2)
     g = bodies.g
@@ -642,14 +649,14 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
         piece_b = gather(ar, shapes.vertex_piece, edge)
         point = gather_rows(ar, w, vert)
         normal = gather_rows(ar, nw, edge)
-        order, starts, isl_bodies, body_starts = island_groups(ar, n, dynamic, body_a,
-                                                               body_b)
+        order, starts, isl_bodies, body_starts = island_groups_inline(ar, n, dynamic, body_a,
+                                                                      body_b)
         slip_tol = _larger(st.slip_tol_mps, h * spin)
         settings = RowSettings(h, st.touch_m, st.direct_max_rows, st.push_out, st.push_max_mps,
                                st.slop_m, -2.0 * g * h, slip_tol, st.friction_impulse,
                                st.spec_depth, margin)
         (keep, tangent, r_a, r_b, mu_s, mu_d, rest, v_n_free, v_t_free, v_t_pre, pile,
-         colliding, b_n, box, mu_lo, mu_hi, gap_min) = contact_rows(
+         colliding, b_n, box, mu_lo, mu_hi, gap_min) = contact_rows_inline(
             ar, body_a, body_b, point, normal, gap, order, starts, mid_pos, end_vel, end_om, vel,
             om, bodies.mu_static, bodies.mu_dynamic, bodies.restitution, piece_a, piece_b,
             shapes.piece_width, settings)
@@ -673,8 +680,8 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
             piece_a, piece_b = gather(ar, piece_a, keep), gather(ar, piece_b, keep)
             point, normal = gather_rows(ar, point, keep), gather_rows(ar, normal, keep)
             gap, param = gather(ar, gap, keep), gather(ar, param, keep)
-            order, starts, isl_bodies, body_starts = island_groups(ar, n, dynamic, body_a,
-                                                                   body_b)
+            order, starts, isl_bodies, body_starts = island_groups_inline(ar, n, dynamic,
+                                                                          body_a, body_b)
             n_spare = k - m
         step_floats[F_MAX_PENETRATION] = _larger(step_floats[F_MAX_PENETRATION], -gap_min)
         projected = empty_b(ar, m)
@@ -753,8 +760,8 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
                 p_t[order[q]] = x_t[q]
                 p_state[order[q]] = states[q]
             dv = zeros_f2(ar, n, 3)
-            apply_impulses(ar, dv, body_a, body_b, normal, tangent, r_a, r_b,
-                           bodies.inv_mass, bodies.inv_inertia, p_n, p_t)
+            apply_impulses_inline(ar, dv, body_a, body_b, normal, tangent, r_a, r_b,
+                                  bodies.inv_mass, bodies.inv_inertia, p_n, p_t)
             for i in range(n):
                 if dynamic[i]:
                     end_vel[i, 0] = end_vel[i, 0] + dv[i, 0]
@@ -787,7 +794,7 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
                                 copy_f2(ar, approach.vel))
 
     # the second half step
-    drift(dyn_idx, mid_pos, mid_ang, end_vel, end_om, half, new_pos, new_ang)
+    drift_inline(dyn_idx, mid_pos, mid_ang, end_vel, end_om, half, new_pos, new_ang)
     for i in range(n):
         if dynamic[i]:
             new_vel[i, 0] = end_vel[i, 0]
@@ -808,8 +815,8 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
             sin[i] = math.sin(new_ang[i])
         idx = _where(ar, projected)
         gap_end = zeros_f(ar, m)
-        got = feature_gaps(ar, idx, vert, edge, shapes.vertices, shapes.normals,
-                           shapes.vertex_body, new_pos, cos, sin)
+        got = feature_gaps_inline(ar, idx, vert, edge, shapes.vertices, shapes.normals,
+                                  shapes.vertex_body, new_pos, cos, sin)
         deep_any = False
         for q in range(idx.shape[0]):
             gap_end[idx[q]] = got[q]
@@ -847,11 +854,13 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
                     mask[q] = projected[q]
                 idx = _where(ar, mask)
                 gap_end = zeros_f(ar, kk)
-                got = feature_gaps(ar, idx, c_vert, c_edge, shapes.vertices, shapes.normals,
-                                   shapes.vertex_body, new_pos, cos, sin)
+                got = feature_gaps_inline(ar, idx, c_vert, c_edge, shapes.vertices,
+                                          shapes.normals, shapes.vertex_body, new_pos, cos,
+                                          sin)
                 for q in range(idx.shape[0]):
                     gap_end[idx[q]] = got[q]
-                order, starts, isl_bodies, body_starts = island_groups(ar, n, dynamic, c_a, c_b)
+                order, starts, isl_bodies, body_starts = island_groups_inline(ar, n, dynamic,
+                                                                              c_a, c_b)
                 p_vert, p_edge = c_vert, c_edge
                 a_o, b_o = gather(ar, c_a, order), gather(ar, c_b, order)
                 normal_o = gather_rows(ar, c_normal, order)
@@ -884,11 +893,10 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
                     if at[q] >= 0:
                         states_in[q] = new_warm.projection_state[at[q]]
             states_out = empty_i(ar, kk)
-            res, work, codes = solve_small(ar, sel, starts, a_o, b_o, normal_o, tangent_o,
-                                           r_a_o, r_b_o, bodies.inv_mass, bodies.inv_inertia,
-                                           rhs, zeros, full_b(ar, kk, False), zeros, zeros,
-                                           x_n, zeros_f(ar, kk), zeros_f(ar, kk), states_in,
-                                           states_out)
+            res, work, codes = solve_small_inline(
+                ar, sel, starts, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o, bodies.inv_mass,
+                bodies.inv_inertia, rhs, zeros, full_b(ar, kk, False), zeros, zeros, x_n,
+                zeros_f(ar, kk), zeros_f(ar, kk), states_in, states_out)
             for i in range(n_isl):
                 if sel[i] and res[i] > st.lcp_tol:
                     return REFERENCE, warm, approach
@@ -897,8 +905,8 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
                         new_warm.projection_state[at[q]] = states_out[q]
             _record_batch(step_ints, step_floats, sel, lens, work, res, sel)
             dv = zeros_f2(ar, n, 3)
-            apply_impulses(ar, dv, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o,
-                           bodies.inv_mass, bodies.inv_inertia, x_n, zeros)
+            apply_impulses_inline(ar, dv, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o,
+                                  bodies.inv_mass, bodies.inv_inertia, x_n, zeros)
             sunk = empty_f(ar, kk)
             for q in range(kk):
                 x = -gap_o[q]
