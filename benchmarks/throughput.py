@@ -16,8 +16,9 @@ that carries them to the drive's displacement at the end of the step; pymunk's d
 otherwise (10 iterations), a collision slop of 0.1 mm (its default, 0.1 length units, is
 meant for pixels) and friction sqrt(mu) on every shape, as pymunk multiplies the two shapes'
 coefficients. Runs are round robin (each repeat runs every case on both engines, in
-alternating order) and the table shows medians of ``--repeats`` (>= 3) wall times; the JSON
-has every run. ``escaped`` counts parts whose centre left the region between the walls;
+alternating order) and the table shows medians of ``--repeats`` (>= 3) wall times, their
+ratio, and the spread of the repeats' own ratios (both engines back to back); the JSON has
+every run. ``escaped`` counts parts whose centre left the region between the walls;
 ``deepest`` is the deepest overlap (feeder_sim: the solver's largest penetration over every
 step; pymunk: its contact distances sampled every 50 ms). Run from the repository root::
 
@@ -206,8 +207,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--parts', type=int, nargs='*', default=[10, 50, 200, 1000])
     ap.add_argument('--duration', type=float, default=1.0, help='simulated s of each pile run')
-    ap.add_argument('--conveying-duration', type=float, default=0.6,
-                    help='simulated s of the one-part run (30 periods)')
+    ap.add_argument('--conveying-duration', type=float, default=3.0,
+                    help='simulated s of the one-part run (150 periods; a run of a few '
+                         'milliseconds of wall time would measure the machine\'s jitter)')
     ap.add_argument('--repeats', type=int, default=3)
     ap.add_argument('--out', default=str(ROOT / 'out' / 'bench' / 'throughput.json'),
                     help='JSON output, and a PNG beside it (default out/bench/throughput.json)')
@@ -239,6 +241,11 @@ def main() -> None:
             row[engine] = {'median': statistics.median(r['wall_per_sim_s'] for r in rs),
                            'runs': rs}
         row['ratio'] = row['feeder_sim']['median'] / row['pymunk']['median']
+        # each repeat's own ratio: both engines ran back to back, so the machine's drift
+        # between repeats cancels; their spread is the measurement's
+        row['repeat_ratios'] = [f['wall_per_sim_s'] / p['wall_per_sim_s'] for f, p in
+                                zip(runs[case['name']]['feeder_sim'],
+                                    runs[case['name']]['pymunk'], strict=True)]
         rows.append(row)
     by = {r['name']: r for r in rows}
     growth = None
@@ -246,17 +253,18 @@ def main() -> None:
         growth = by['pile 1000']['feeder_sim']['median'] / by['pile 200']['feeder_sim']['median']
     print()
     print(f'{"case":>12} {"dt s":>7} {"feeder_sim":>10} {"pymunk":>8} {"ratio":>6} '
-          f'{"target":>6} {"escaped":>9} {"deepest mm":>11}')
-    print(f'{"":>12} {"":>7} {"s/sim s":>10} {"s/sim s":>8} {"":>6} {"":>6} {"fs / pm":>9} '
-          f'{"fs / pm":>11}')
+          f'{"repeats":>11} {"target":>6} {"escaped":>9} {"deepest mm":>11}')
+    print(f'{"":>12} {"":>7} {"s/sim s":>10} {"s/sim s":>8} {"":>6} {"min-max":>11} {"":>6} '
+          f'{"fs / pm":>9} {"fs / pm":>11}')
     for r in rows:
         f, p = r['feeder_sim'], r['pymunk']
         esc = f'{max(x["escaped"] for x in f["runs"])} / {max(x["escaped"] for x in p["runs"])}'
         deep = (f'{1e3 * max(x["deepest_m"] for x in f["runs"]):.2f} / '
                 f'{1e3 * max(x["deepest_m"] for x in p["runs"]):.2f}')
         target = f'{r["target"]:.1f}' if r['target'] is not None else '-'
+        spread = f'{min(r["repeat_ratios"]):.2f}-{max(r["repeat_ratios"]):.2f}'
         print(f'{r["name"]:>12} {r["dt"]:7.0e} {f["median"]:10.4f} {p["median"]:8.4f} '
-              f'{r["ratio"]:6.2f} {target:>6} {esc:>9} {deep:>11}')
+              f'{r["ratio"]:6.2f} {spread:>11} {target:>6} {esc:>9} {deep:>11}')
     if growth is not None:
         print(f'\n1000-part cost / 200-part cost (feeder_sim): {growth:.2f} (target <= 5.5)')
     out = Path(args.out)
