@@ -406,10 +406,11 @@ def _record_batch(ints, floats, sel, rows, work, res, converged):
 
 @inner(machine_inline=True)
 def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b_t, box, mu_lo,
-           mu_hi, mu_s, mu_d, keys, todo, warm, st, ints, floats, msgs, n_msgs):
-    """``TimeStepper._solve`` (arrays in island order): the impulses and the row states of
-    the small islands' answers, or ``ok`` False where the compiled Dantzig missed ``lcp_tol``
-    (the reference step takes over)."""
+           mu_hi, mu_s, mu_d, at, todo, warm, st, ints, floats, msgs, n_msgs):
+    """``TimeStepper._solve`` (arrays in island order; ``at``: each contact's place in the
+    previous step's ``warm``, -1 where new): the impulses and the row states of the small
+    islands' answers, or ``ok`` False where the compiled Dantzig missed ``lcp_tol`` (the
+    reference step takes over)."""
     k = a.shape[0]
     n_isl = starts.shape[0] - 1
     lens = empty_i(ar, n_isl)
@@ -433,7 +434,6 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
     for q in range(k):
         may_slide[q] = box[q] and mu_d[q] < mu_s[q]
         any_slide = any_slide or may_slide[q]
-    at = _warm_find(ar, warm, keys)
     states_in = empty_i(ar, k)
     x_n, x_t = zeros_f(ar, k), zeros_f(ar, k)
     for q in range(k):
@@ -712,6 +712,7 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
         keys = empty_i(ar, m)
         for q in range(m):
             keys[q] = vert[q] * nv + edge[q]
+        at = _warm_find(ar, warm, keys)
         p_n = zeros_f(ar, m)
         p_t = zeros_f(ar, m)
         p_state = full_i(ar, m, -1)
@@ -752,7 +753,7 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
                 ar, n, starts, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o, bodies, b_no,
                 gather(ar, v_t_free, order), gather(ar, box, order), gather(ar, mu_lo, order),
                 gather(ar, mu_hi, order), gather(ar, mu_s, order), gather(ar, mu_d, order),
-                gather(ar, keys, order), neg, warm, st, step_ints, step_floats, msgs, step_msgs)
+                gather(ar, at, order), neg, warm, st, step_ints, step_floats, msgs, step_msgs)
             if not ok_solve:
                 return REFERENCE, warm, approach
             for q in range(m):
@@ -777,7 +778,6 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
         else:
             new_approach = Approach(empty_i(ar, 0), empty_i(ar, 0), empty_f2(ar, 0, 3))
         # a contact carries its projection's row states on until it is projected again
-        at = _warm_find(ar, warm, keys)
         proj_state = full_i(ar, m, -1)
         for q in range(m):
             if at[q] >= 0:
@@ -822,7 +822,6 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
             gap_end[idx[q]] = got[q]
             deep_any = deep_any or got[q] < -st.projection_slop_m
         if deep_any:
-            p_vert, p_edge = vert, edge
             if n_spare:
                 # TimeStepper._with_spare: the contacts left out of the velocity solve too
                 kk = m + n_spare
@@ -861,7 +860,6 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
                     gap_end[idx[q]] = got[q]
                 order, starts, isl_bodies, body_starts = island_groups_inline(ar, n, dynamic,
                                                                               c_a, c_b)
-                p_vert, p_edge = c_vert, c_edge
                 a_o, b_o = gather(ar, c_a, order), gather(ar, c_b, order)
                 normal_o = gather_rows(ar, c_normal, order)
                 tangent_o = gather_rows(ar, c_tangent, order)
@@ -882,16 +880,21 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
                     sel[i] = sel[i] or deep_o[q]
             zeros = zeros_f(ar, kk)
             x_n = zeros_f(ar, kk)
-            # the row states of the contacts' last projection (TimeStepper._project)
-            keys_o = empty_i(ar, kk)
+            # the row states of the contacts' last projection (TimeStepper._project): the
+            # contacts of the velocity solve (the first m) are in this step's warm table at
+            # the inverse of its order o, the spare ones not at all
+            slot = empty_i(ar, m)
+            for q in range(m):
+                slot[o[q]] = q
+            proj_at = full_i(ar, kk, -1)
             for q in range(kk):
-                keys_o[q] = p_vert[order[q]] * nv + p_edge[order[q]]
-            at = _warm_find(ar, new_warm, keys_o)
+                if order[q] < m:
+                    proj_at[q] = slot[order[q]]
             states_in = full_i(ar, kk, -1)
             if st.reuse_row_states:
                 for q in range(kk):
-                    if at[q] >= 0:
-                        states_in[q] = new_warm.projection_state[at[q]]
+                    if proj_at[q] >= 0:
+                        states_in[q] = new_warm.projection_state[proj_at[q]]
             states_out = empty_i(ar, kk)
             res, work, codes = solve_small_inline(
                 ar, sel, starts, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o, bodies.inv_mass,
@@ -901,8 +904,8 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
                 if sel[i] and res[i] > st.lcp_tol:
                     return REFERENCE, warm, approach
                 for q in range(starts[i], starts[i + 1]):
-                    if sel[i] and at[q] >= 0:
-                        new_warm.projection_state[at[q]] = states_out[q]
+                    if sel[i] and proj_at[q] >= 0:
+                        new_warm.projection_state[proj_at[q]] = states_out[q]
             _record_batch(step_ints, step_floats, sel, lens, work, res, sel)
             dv = zeros_f2(ar, n, 3)
             apply_impulses_inline(ar, dv, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o,
