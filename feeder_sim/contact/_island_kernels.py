@@ -590,15 +590,16 @@ def _push(dv, R, k, ia, ib, col, d):
 
 
 @inner
-def _pgs_island(lo_c, hi_c, a, b, R, fixed_a, fixed_b, dv, box, x_n, x_t, sweeps):
+def _pgs_island(lo_c, hi_c, a, b, R, fixed_a, fixed_b, dv, box, x_n, x_t, g_n, g_t, sweeps):
     """``sweeps`` projected Gauss-Seidel sweeps over contacts lo_c..hi_c-1 in order, each
     normal followed by its friction row, whose bounds use the normal just updated (velocity
     form: ``dv`` holds M^-1 J^T x of the island's bodies; contact data in ``R``, see
     ``_pgs_records``; steps are the SOR factor / A_ii, 0 for a row without a positive pivot).
     Always forward: alternating directions can cycle between two fixed points when contacts
     are redundant (two corners of a box edge give identical friction rows). The row updates
-    are written out (no helper calls) because this is the innermost loop. Returns the largest
-    velocity change ``A_ii |dx_i|`` of the last sweep (m/s).
+    are written out (no helper calls) because this is the innermost loop. Adds each row's
+    impulse changes to ``g_n`` / ``g_t``; returns the largest velocity change ``A_ii |dx_i|``
+    of the last sweep (m/s).
 
     A row's w is ``b + ja . dv_a + jb . dv_b`` summed left to right. The sweep is bound by the
     latency of that chain of additions, so the three terms of a fixed body (the track, a
@@ -627,6 +628,7 @@ def _pgs_island(lo_c, hi_c, a, b, R, fixed_a, fixed_b, dv, box, x_n, x_t, sweeps
                 change = max(change, abs(d) * R[k, _R_DN])
                 _push(dv, R, k, ia, ib, 6, d)
                 x_n[k] = xn
+                g_n[k] += d
             # (xn now equals x_n[k] bit for bit: x_n never holds -0.0)
             if xn == 0.0:
                 # an open contact carries no friction: no need to evaluate its row
@@ -635,6 +637,7 @@ def _pgs_island(lo_c, hi_c, a, b, R, fixed_a, fixed_b, dv, box, x_n, x_t, sweeps
                     change = max(change, abs(d) * R[k, _R_DT])
                     _push(dv, R, k, ia, ib, 18, d)
                     x_t[k] = 0.0
+                    g_t[k] += d
             elif box[k]:
                 w = R[k, _R_BT]
                 if not fa:
@@ -649,6 +652,7 @@ def _pgs_island(lo_c, hi_c, a, b, R, fixed_a, fixed_b, dv, box, x_n, x_t, sweeps
                     change = max(change, abs(d) * R[k, _R_DT])
                     _push(dv, R, k, ia, ib, 18, d)
                     x_t[k] = xt
+                    g_t[k] += d
     return change
 
 
@@ -788,17 +792,83 @@ def solve_small_inline(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_
     return res, work, codes
 
 
+@inner
+def _momentum(lo_c, hi_c, a, b, R, bodies, dv, dv0, P, box, mu_lo, mu_hi, x_n, x_t, g_n, g_t,
+              p_n, p_t, rr_old):
+    """One step of Silcowitz, Niebe and Erleben's nonsmooth nonlinear conjugate gradient
+    (NNCG) after the sweeps that changed the impulses of contacts lo_c..hi_c-1 by ``g_n`` /
+    ``g_t`` and the velocities of the island's ``bodies`` from ``dv0`` to
+    ``dv``: with beta = |g|^2 / ``rr_old`` (|g|^2 of the step before), the impulses move on by
+    beta times the previous direction ``p_n`` / ``p_t`` (in velocities ``P``, per body),
+    projected onto x_N >= 0 and the friction bounds, and the direction becomes this step's
+    whole change. The velocities move by beta P body by body; only the rows the projection
+    cuts back are pushed through their contact (some 4 % of them in a 1000-part pile).
+    beta > 1 (the sweeps changed more than in the step before: no longer a descent)
+    restarts from a zero direction. Clears ``g`` and leaves ``dv0`` = ``dv``; returns |g|^2,
+    the next step's ``rr_old``."""
+    rr = 0.0
+    for k in range(lo_c, hi_c):
+        rr += g_n[k] * g_n[k] + g_t[k] * g_t[k]
+    beta = rr / rr_old          # the first step: rr_old inf, beta 0 (the direction is g)
+    if not (beta <= 1.0):
+        for q in range(bodies.shape[0]):
+            i = bodies[q]
+            for j in range(3):
+                P[i, j] = 0.0
+                dv0[i, j] = dv[i, j]
+        for k in range(lo_c, hi_c):
+            p_n[k] = 0.0
+            p_t[k] = 0.0
+            g_n[k] = 0.0
+            g_t[k] = 0.0
+        return rr
+    for q in range(bodies.shape[0]):
+        i = bodies[q]
+        for j in range(3):
+            step = beta * P[i, j]
+            P[i, j] = (dv[i, j] - dv0[i, j]) + step
+            dv[i, j] += step
+            dv0[i, j] = dv[i, j]
+    for k in range(lo_c, hi_c):
+        ia, ib = a[k], b[k]
+        free = x_n[k] + beta * p_n[k]
+        xn = free if free > 0.0 else 0.0
+        cut = xn - free
+        if cut != 0.0:
+            _push(dv, R, k, ia, ib, 6, cut)
+            _push(dv0, R, k, ia, ib, 6, cut)
+            _push(P, R, k, ia, ib, 6, cut)
+        p_n[k] = g_n[k] + (xn - x_n[k])
+        x_n[k] = xn
+        g_n[k] = 0.0
+        free = x_t[k] + beta * p_t[k]
+        xt = min(max(free, -mu_lo[k] * xn), mu_hi[k] * xn) if box[k] else 0.0
+        cut = xt - free
+        if cut != 0.0:
+            _push(dv, R, k, ia, ib, 18, cut)
+            _push(dv0, R, k, ia, ib, 18, cut)
+            _push(P, R, k, ia, ib, 18, cut)
+        p_t[k] = g_t[k] + (xt - x_t[k])
+        x_t[k] = xt
+        g_t[k] = 0.0
+    return rr
+
+
 @jit
 def solve_pgs(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, b_n,
-              b_t, box, mu_lo, mu_hi, x_n, x_t, w_t, dv, tol, max_sweeps, check, omega):
+              b_t, box, mu_lo, mu_hi, x_n, x_t, w_t, dv, tol, max_sweeps, check, omega,
+              momentum):
     """The islands with ``select`` by projected Gauss-Seidel in velocity form
-    (``_pgs_island``).
+    (``_pgs_island``), with ``momentum``: each ``check`` sweeps followed by a nonsmooth
+    conjugate gradient step (``_momentum``; a 200-part pile on the vibrating track needs a
+    third fewer sweeps).
 
     ``x_n`` / ``x_t`` hold the warm start (the previous step's impulses of the same
     features, 0 for new ones) on entry and the answer on return; ``dv`` (n_bodies, 3) is
     scratch and must be zero. Each island is swept until its velocity residual (m/s, see
     ``_island_residual``, checked every ``check`` sweeps) is <= ``tol`` or ``max_sweeps``
-    is reached. Writes the new tangential velocities to ``w_t``; returns per island the
+    is reached; the answer is always that of a sweep, whose impulses lie within their
+    bounds. Writes the new tangential velocities to ``w_t``; returns per island the
     ``lcp.residual``, the velocity residual and the sweeps."""
     c = a.shape[0]
     n_isl = starts.shape[0] - 1
@@ -816,6 +886,15 @@ def solve_pgs(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv
     res = zeros_f(ar, n_isl)
     vres = zeros_f(ar, n_isl)
     work = full_i(ar, n_isl, 0)
+    g_n = zeros_f(ar, c)
+    g_t = zeros_f(ar, c)
+    p_n = zeros_f(ar, c)
+    p_t = zeros_f(ar, c)
+    nbod = dv.shape[0]
+    seen = full_b(ar, nbod, False)
+    bodies = empty_i(ar, nbod)
+    dv0 = empty_f2(ar, nbod, 3)
+    P = empty_f2(ar, nbod, 3)
     for isl in range(n_isl):
         if not select[isl]:
             continue
@@ -835,13 +914,32 @@ def solve_pgs(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv
         r, rv = _island_residual(lo_c, hi_c, a, b, ja, jb, dv, b_n, b_t, box, mu_lo, mu_hi,
                                  x_n, x_t, diag, c, w_t)
         s = 0
+        rr = np.inf
+        nb = 0
+        if momentum:
+            for k in range(lo_c, hi_c):
+                for i in (a[k], b[k]):
+                    if not seen[i] and (inv_mass[i] != 0.0 or inv_inertia[i] != 0.0):
+                        seen[i] = True
+                        bodies[nb] = i
+                        nb += 1
+                        for j in range(3):
+                            dv0[i, j] = dv[i, j]
+                            P[i, j] = 0.0
+        isl_bodies = bodies[:nb]
         while rv > tol and s < max_sweeps:
             n = min(check, max_sweeps - s)
-            change = _pgs_island(lo_c, hi_c, a, b, R, fixed_a, fixed_b, dv, box, x_n, x_t, n)
+            change = _pgs_island(lo_c, hi_c, a, b, R, fixed_a, fixed_b, dv, box, x_n, x_t,
+                                 g_n, g_t, n)
             s += n
             if change <= tol or s >= max_sweeps:
                 r, rv = _island_residual(lo_c, hi_c, a, b, ja, jb, dv, b_n, b_t, box, mu_lo,
                                          mu_hi, x_n, x_t, diag, c, w_t)
+                if rv <= tol or s >= max_sweeps:
+                    break
+            if momentum:
+                rr = _momentum(lo_c, hi_c, a, b, R, isl_bodies, dv, dv0, P, box, mu_lo, mu_hi,
+                               x_n, x_t, g_n, g_t, p_n, p_t, rr)
         res[isl] = r
         vres[isl] = rv
         work[isl] = s

@@ -148,6 +148,7 @@ class StepSettings(NamedTuple):
     pgs_max_sweeps: int
     pgs_check: int
     pgs_omega: float
+    pgs_momentum: bool
     friction_impulse: bool
     narrow: NarrowPhaseTolerances   # find_contacts' defaults; bp_margin_m holds only the
     #                                 broad phase's widening (2 param_tol x longest edge), the
@@ -461,7 +462,7 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
                                         bodies.inv_mass, bodies.inv_inertia, b_n, b_t, box, lo,
                                         hi, x_n, x_t, v_t_new, zeros_f2(ar, n_bodies, 3),
                                         st.pgs_tol_mps, st.pgs_max_sweeps, st.pgs_check,
-                                        st.pgs_omega)
+                                        st.pgs_omega, st.pgs_momentum)
             conv = empty_b(ar, n_isl)
             for i in range(n_isl):
                 conv[i] = vres[i] <= st.pgs_tol_mps

@@ -58,7 +58,14 @@ island's problem is the ``dynamics.assemble`` layout (normals, then the friction
   is an answer of the same LCP; where the LCP has one, Dantzig's to round-off;
 * larger islands (piles): projected Gauss-Seidel in velocity form (``_island_kernels.solve_pgs``,
   SOR factor ``pgs_omega``), warm-started with the previous step's impulses of the same
-  vertex-edge features, each normal followed by its friction row. Pivoting does not scale:
+  vertex-edge features, each normal followed by its friction row, and every ``pgs_check``
+  sweeps a step of Silcowitz, Niebe and Erleben's nonsmooth nonlinear conjugate gradient
+  (``pgs_momentum``; Silcowitz-Hansen, Niebe, Erleben, "A nonsmooth nonlinear conjugate
+  gradient method for interactive contact force problems", The Visual Computer 26, 2010):
+  the impulses move on along the previous direction, scaled by the ratio of the last two
+  sweeps' squared changes, and are projected back into their bounds. It halves the sweeps
+  of a 200-part pile and of a 1000-part one, and cuts those of a tight tolerance five- to
+  tenfold. Pivoting does not scale:
   every pivot solves the clamped system, so a pile's 1 070-row island took 1 250 pivots and
   5-7 s in the numba Dantzig, against 1.2-1.5 ms for PGS to 1e-3 m/s. Above ~50 rows one
   Dantzig solve already costs more than a whole step of the pile benchmark. PGS stops when
@@ -170,11 +177,12 @@ class TimeStepSettings:
     direct_max_rows: int = 48      # islands with more LCP rows go to projected Gauss-Seidel
     pgs_tol_mps: float = 1e-3      # velocity residual (m/s) the PGS path must reach
     pgs_max_sweeps: int = 200
-    pgs_check: int = 1             # PGS sweeps between convergence tests
+    pgs_check: int = 2             # PGS sweeps between convergence tests (and NNCG steps)
     compiled: bool = True          # whole steps in _time_stepping_kernels.advance; False: the
     #                                Python reference, step by step
     pgs_omega: float = 1.3         # over-relaxation of the large-island PGS (24 instead of
     #                                33 sweeps per solve in the 200-part pile, same result)
+    pgs_momentum: bool = True      # a conjugate gradient step after each check (NNCG)
 
 
 def solve_impulses(world: World, cs: ContactSet, bodies: np.ndarray, b_n: np.ndarray,
@@ -372,7 +380,7 @@ class TimeStepper(StepperBase):
             float(st.slip_tol_mps), float(st.lcp_tol), bool(st.reuse_row_states),
             int(st.direct_max_rows),
             float(st.pgs_tol_mps), int(st.pgs_max_sweeps), int(st.pgs_check),
-            float(st.pgs_omega), bool(spec.friction_impulse), narrow)
+            float(st.pgs_omega), bool(st.pgs_momentum), bool(spec.friction_impulse), narrow)
 
     def margin(self, state: State, h: float) -> tuple[float, float]:
         """Distances a vertex can close on an edge in one step (m): ``(search, base)``.
@@ -922,7 +930,8 @@ class TimeStepper(StepperBase):
             if large.any():
                 res, vres, work = K.solve_pgs(heap_state(), large, *data, lo, hi, x_n, x_t,
                                               v_t_new, np.zeros((w.n, 3)), st.pgs_tol_mps,
-                                              st.pgs_max_sweeps, st.pgs_check, st.pgs_omega)
+                                              st.pgs_max_sweeps, st.pgs_check, st.pgs_omega,
+                                              st.pgs_momentum)
                 conv = vres[large] <= st.pgs_tol_mps
                 stats.record_batch(rows[large], work[large], res[large], conv, 'pgs')
                 stats.pgs_solves += int(large.sum())
