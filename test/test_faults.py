@@ -10,6 +10,7 @@ moments must end it within a second with a readable log.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 from pathlib import Path
 import random
@@ -25,6 +26,7 @@ import yaml
 
 from feeder_sim.model.scene import parse_scene, SceneError, shipped_scenes
 from feeder_sim.simulator import Simulator
+from feeder_sim.stepping import EventSettings, ImpulseSettings, TimeStepSettings
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config'
 SCENES = {name: yaml.safe_load((CONFIG / f'{name}.yaml').read_text())
@@ -210,3 +212,47 @@ def test_a_flood_of_random_commands_leaves_a_valid_drive(tmp_path):
         assert node.commands_accepted + node.commands_rejected > 0
     finally:
         graph.close()
+
+
+@pytest.mark.parametrize('settings_type', [TimeStepSettings, EventSettings, ImpulseSettings])
+def test_settings_refuse_what_they_cannot_run_in_one_line(settings_type):
+    """Every field of every method's settings, set to each nasty value: either it is taken as
+    the field's type (finite, within its range) or refused by one line naming the field."""
+    taken = 0
+    for f in dataclasses.fields(settings_type):
+        kinds = [k.strip() for k in str(f.type).split('|')]
+        refused = 0
+        for value in NASTY:
+            s = settings_type()
+            try:
+                setattr(s, f.name, value)
+            except ValueError as e:
+                message = str(e)
+                assert '\n' not in message
+                assert message.startswith(f'{settings_type.__name__}.{f.name} must be ')
+                refused += 1
+                continue
+            got = getattr(s, f.name)
+            taken += 1
+            if got is None:
+                assert 'None' in kinds
+            elif kinds[0] == 'bool':
+                assert isinstance(got, bool) and isinstance(value, bool)
+            else:
+                assert type(got).__name__ == kinds[0] and not isinstance(value, bool)
+                assert math.isfinite(got)
+                rule = settings_type.LIMITS.get(f.name, '')
+                assert not rule.startswith('>') or got >= float(rule.split()[1])
+        assert refused >= 15                        # text, NaN, inf, lists, mappings ...
+    assert taken
+
+
+def test_a_settings_value_that_would_never_end_a_solve_is_refused_before_the_run():
+    sim = Simulator(parse_scene(SCENES['track_ten_boxes']), method='time_stepping')
+    with pytest.raises(ValueError, match=r'^TimeStepSettings\.pgs_check must be an integer '
+                                         r'\(64 bits\) >= 1, got 0$'):
+        sim._stepper.settings.pgs_check = 0         # it would have swept forever
+    with pytest.raises(TypeError, match='^time_stepping takes TimeStepSettings settings, got '
+                                        'EventSettings$'):
+        Simulator(parse_scene(SCENES['track_ten_boxes']), method='time_stepping',
+                  settings=EventSettings())

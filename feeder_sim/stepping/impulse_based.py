@@ -105,6 +105,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import math
+from typing import ClassVar
 
 import numpy as np
 
@@ -123,7 +124,7 @@ from feeder_sim.contact.routh import (
 )
 from feeder_sim.model.vibration import segment_motion
 from feeder_sim.model.world import DRIVEN, FIXED, MOVING, State
-from feeder_sim.stepping.protocol import StepContacts, StepperBase
+from feeder_sim.stepping.protocol import CheckedSettings, StepContacts, StepperBase
 
 __all__ = ['CollisionResult', 'ImpulseBased', 'ImpulseSettings', 'collide', 'LAWS']
 
@@ -141,8 +142,14 @@ _F_MAX_PEN, _F_CAP_T, _F_GIVE_UP_T = 0, 1, 2
 
 
 @dataclass
-class ImpulseSettings:
-    """Tuning of the impulse-based method (SI units). ``None`` means derived, as documented."""
+class ImpulseSettings(CheckedSettings):
+    """Tuning of the impulse-based method (SI units). ``None`` means derived, as documented;
+    every value is checked when set."""
+
+    LIMITS: ClassVar[dict[str, str]] = {
+        'envelope_m': '> 0', 'penetration_m': '> 0', 'bounce_speed_mps': '>= 0',
+        'micro_speed_factor': '>= 0', 'max_step_s': '> 0', 'max_sweeps': '>= 1',
+        'max_toi_iterations': '>= 0', 'min_step_s': '> 0', 'candidate_margin_m': '>= 0'}
 
     envelope_m: float = 1e-8
     """Collision envelope eps: corners closer than this to a piece are in contact."""

@@ -10,7 +10,9 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol
+import math
+import numbers
+from typing import ClassVar, Protocol
 
 import numpy as np
 
@@ -43,6 +45,66 @@ class Stepper(Protocol):
         ...
 
 
+def _parse_range(rule: str) -> tuple[float, float, bool, bool]:
+    """'>= 0', '> 0', '[0, 1]', '(0, 2)' and the like: (low, high, low included, high
+    included)."""
+    if rule[0] in '[(':
+        lo, hi = (float(x) for x in rule[1:-1].split(','))
+        return lo, hi, rule[0] == '[', rule[-1] == ']'
+    op, value = rule.split()
+    return float(value), math.inf, op == '>=', False
+
+
+class CheckedSettings:
+    """A stepping method's settings dataclass whose every assignment, at construction or
+    later, is checked against the field's annotated type (``bool``, ``int``, ``float``, each
+    optionally ``| None``) and the range in ``LIMITS`` (``'>= 0'``, ``'> 0'``, ``'[0, 1]'``,
+    ``'(0, 2)'``); floats must be finite. A bad value raises a ValueError naming the field, the
+    allowed values and the value given, so that a setting can never hang or break a run
+    later (``pgs_check = 0`` would sweep forever)."""
+
+    LIMITS: ClassVar[dict[str, str]] = {}
+
+    def __setattr__(self, name: str, value: object) -> None:
+        f = type(self).__dataclass_fields__.get(name)  # type: ignore[attr-defined]
+        if f is not None:
+            value = self._checked(name, str(f.type), value)
+        object.__setattr__(self, name, value)
+
+    def _checked(self, name: str, annotation: str, value: object) -> object:
+        kinds = [k.strip() for k in annotation.split('|')]
+        rule = self.LIMITS.get(name)
+        what = {'bool': 'true or false', 'int': 'an integer (64 bits)',
+                'float': 'a finite number'}[kinds[0]]
+        want = what + (f' {rule}' if rule and rule[0] in '<>' else f' in {rule}' if rule else '')
+        if 'None' in kinds:
+            want += ' or None'
+        if value is None and 'None' in kinds:
+            return None
+        ok = False
+        if kinds[0] == 'bool':
+            ok = isinstance(value, (bool, np.bool_))
+            value = bool(value) if ok else value
+        elif not isinstance(value, (bool, np.bool_)):
+            if kinds[0] == 'int' and isinstance(value, numbers.Integral):
+                # compiled kernels take int64
+                ok = -2 ** 63 <= int(value) < 2 ** 63
+                value = int(value) if ok else value
+            elif kinds[0] == 'float' and isinstance(value, numbers.Real):
+                try:
+                    ok = math.isfinite(float(value))
+                except OverflowError:       # an integer beyond any float
+                    ok = False
+                value = float(value) if ok else value
+        if ok and rule and not isinstance(value, bool):
+            lo, hi, lo_in, hi_in = _parse_range(rule)
+            ok = ((value >= lo if lo_in else value > lo)
+                  and (value <= hi if hi_in else value < hi))
+        if not ok:
+            raise ValueError(f'{type(self).__name__}.{name} must be {want}, got {value!r}')
+        return value
+
+
 class StepperBase:
     """What every method keeps: the world, the scene's solver spec, the counters it adds to,
     and its own settings (``settings_type()`` when none are given). A method derives what it
@@ -58,6 +120,9 @@ class StepperBase:
         self.world = world
         self.spec = spec
         self.stats = stats
+        if settings is not None and not isinstance(settings, self.settings_type):
+            raise TypeError(f'{spec.method} takes {self.settings_type.__name__} settings, '
+                            f'got {type(settings).__name__}')
         self.settings = settings or self.settings_type()
         self.prepare()
 

@@ -106,6 +106,7 @@ settles, and the PGS sweep against a plain transcription of it.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
@@ -138,7 +139,7 @@ from feeder_sim.contact.dynamics import (
 )
 from feeder_sim.model.world import State, World
 from feeder_sim.stepping import _time_stepping_kernels as TK
-from feeder_sim.stepping.protocol import StepContacts, StepperBase
+from feeder_sim.stepping.protocol import CheckedSettings, StepContacts, StepperBase
 
 # First size of each scratch arena of the compiled step (bytes): a single part's step needs
 # ~20 kB; a pile's step ~1 kB per vertex. A step that needs more grows them for the next call.
@@ -147,7 +148,16 @@ _ARENA_BYTES_PER_VERTEX = 1024
 
 
 @dataclass
-class TimeStepSettings:
+class TimeStepSettings(CheckedSettings):
+    """Tuning of the time-stepping method (SI units); every value is checked when set."""
+
+    LIMITS: ClassVar[dict[str, str]] = {
+        'touch_m': '>= 0', 'projection_slop_m': '>= 0', 'projection_reach': '> 0',
+        'slop_m': '>= 0', 'push_out': '[0, 1]', 'push_max_mps': '>= 0',
+        'speculative_depth': '>= 0', 'slip_tol_mps': '>= 0', 'lcp_tol': '> 0',
+        'direct_max_rows': '>= 0', 'pgs_tol_mps': '>= 0', 'pgs_max_sweeps': '>= 0',
+        'pgs_check': '>= 1', 'pgs_omega': '(0, 2)'}
+
     touch_m: float = 1e-9          # gap below which a contact is touching
     projection_slop_m: float = 1e-9  # penetration left by the projection (small islands)
     projection_reach: float = 2.0  # no point of a body moves more than this times the summed

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import math
-from typing import NamedTuple
+from typing import ClassVar, NamedTuple
 
 import numpy as np
 
@@ -21,7 +21,7 @@ from feeder_sim.model.scene import SolverSpec
 from feeder_sim.model.world import State, World
 from feeder_sim.stepping.event_driven import _chain as chain
 from feeder_sim.stepping.event_driven import _kernels as kern
-from feeder_sim.stepping.protocol import StepContacts
+from feeder_sim.stepping.protocol import CheckedSettings, StepContacts
 
 # Event functions are scaled to O(1); one fires when it drops below -EVENT_THRESHOLD, so a
 # function that starts a phase at zero (a contact that just separated) does not fire on noise.
@@ -39,7 +39,14 @@ CHAIN_ROWS = 512
 
 
 @dataclass
-class EventSettings:
+class EventSettings(CheckedSettings):
+    """Tuning of the event-driven method (SI units); every value is checked when set."""
+
+    LIMITS: ClassVar[dict[str, str]] = {
+        'touch_m': '>= 0', 'slip_tol_mps': '>= 0', 'rest_speed_mps': '>= 0', 'lcp_tol': '> 0',
+        'max_events_at_one_time': '>= 1', 'cascade_window_s': '>= 0', 'max_give_way_s': '> 0',
+        'cascade_memory_s': '>= 0', 'max_events_again': '>= 1'}
+
     touch_m: float = 1e-9        # a vertex this close to an edge is in contact
     slip_tol_mps: float = 1e-9   # |v_T| below this is sticking
     rest_speed_mps: float = 1e-4  # impacts slower than this are plastic (no Zeno bouncing)
