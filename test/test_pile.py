@@ -286,12 +286,10 @@ def pgs_reference(select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv
     return res, vres, work
 
 
-def test_pgs_kernel_gives_the_bits_of_a_plain_transcription():
-    sim = pile(24)
-    sim._stepper.settings.direct_max_rows = 0      # every island to PGS
-    sim.advance(0.15)
-    kernel = TS.K.solve_pgs
-    calls = []
+def pgs_calls(sim, t_end):
+    """Copies of the arguments of every ``solve_pgs`` call while ``sim`` advances to
+    ``t_end`` (s)."""
+    kernel, calls = TS.K.solve_pgs, []
 
     def solve_pgs(*args):
         calls.append([x.copy() if isinstance(x, np.ndarray) else x for x in args])
@@ -299,9 +297,18 @@ def test_pgs_kernel_gives_the_bits_of_a_plain_transcription():
 
     TS.K.solve_pgs = solve_pgs
     try:
-        sim.advance(0.16)
+        sim.advance(t_end)
     finally:
         TS.K.solve_pgs = kernel
+    return calls
+
+
+def test_pgs_kernel_gives_the_bits_of_a_plain_transcription():
+    sim = pile(24)
+    sim._stepper.settings.direct_max_rows = 0      # every island to PGS
+    sim.advance(0.15)
+    calls = pgs_calls(sim, 0.16)
+    kernel = TS.K.solve_pgs
     assert calls
     sweeps = 0
     for args in calls:
@@ -352,18 +359,7 @@ def pgs_problems(mu, n_parts=40):
     sim = pile(n_parts, mu=mu)
     sim._stepper.settings.direct_max_rows = 0
     sim.advance(0.2)
-    kernel, calls = TS.K.solve_pgs, []
-
-    def solve_pgs(*args):
-        calls.append([x.copy() if isinstance(x, np.ndarray) else x for x in args])
-        return kernel(*args)
-
-    TS.K.solve_pgs = solve_pgs
-    try:
-        sim.advance(0.201)
-    finally:
-        TS.K.solve_pgs = kernel
-    return calls
+    return pgs_calls(sim, 0.201)
 
 
 def run_pgs(args, tol, momentum, max_sweeps=100_000):
