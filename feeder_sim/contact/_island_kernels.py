@@ -34,10 +34,13 @@ from feeder_sim._arena import (
     full_b,
     full_i,
     full_i2,
+    gather,
+    gather_rows,
     zeros_f,
     zeros_f2,
 )
 from feeder_sim._jit import inner, jit
+from feeder_sim.contact._collision_kernels import _argsort
 from feeder_sim.contact._lcp_kernels import (
     _affine,
     _dense_residual,
@@ -861,7 +864,40 @@ def _momentum(lo_c, hi_c, a, b, R, bodies, dv, dv0, P, box, mu_lo, mu_hi, x_n, x
 @jit
 def solve_pgs(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, b_n,
               b_t, box, mu_lo, mu_hi, x_n, x_t, w_t, dv, tol, max_sweeps, check, omega,
-              momentum):
+              momentum, height):
+    """:func:`_solve_pgs_in_order` with each selected island's contacts taken bottom-up, in
+    order of ``height`` (along -gravity, any unit; ties keep their order): consecutive rows
+    then mostly belong to parts side by side rather than to one body, whose velocity each
+    row must wait for, and a sweep of a settled pile costs 8-30 % less for about as many
+    sweeps. The arguments are those of ``_solve_pgs_in_order`` in the caller's order;
+    ``x_n``, ``x_t`` and ``w_t`` are written back in it."""
+    c = a.shape[0]
+    perm = arange_i(ar, c)
+    for isl in range(starts.shape[0] - 1):
+        if select[isl]:
+            lo_c = starts[isl]
+            local = _argsort(ar, height[lo_c:starts[isl + 1]])
+            for q in range(local.shape[0]):
+                perm[lo_c + q] = lo_c + local[q]
+    s_x_n, s_x_t, s_w_t = gather(ar, x_n, perm), gather(ar, x_t, perm), gather(ar, w_t, perm)
+    res, vres, work = _solve_pgs_in_order(
+        ar, select, starts, gather(ar, a, perm), gather(ar, b, perm),
+        gather_rows(ar, normal, perm), gather_rows(ar, tangent, perm),
+        gather_rows(ar, r_a, perm), gather_rows(ar, r_b, perm), inv_mass, inv_inertia,
+        gather(ar, b_n, perm), gather(ar, b_t, perm), gather(ar, box, perm),
+        gather(ar, mu_lo, perm), gather(ar, mu_hi, perm), s_x_n, s_x_t, s_w_t, dv, tol,
+        max_sweeps, check, omega, momentum)
+    for q in range(c):
+        x_n[perm[q]] = s_x_n[q]
+        x_t[perm[q]] = s_x_t[q]
+        w_t[perm[q]] = s_w_t[q]
+    return res, vres, work
+
+
+@inner
+def _solve_pgs_in_order(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass,
+                        inv_inertia, b_n, b_t, box, mu_lo, mu_hi, x_n, x_t, w_t, dv, tol,
+                        max_sweeps, check, omega, momentum):
     """The islands with ``select`` by projected Gauss-Seidel in velocity form
     (``_pgs_island``), with ``momentum``: each ``check`` sweeps followed by a nonsmooth
     conjugate gradient step (``_momentum``; the 200-part pile of the throughput benchmark

@@ -381,6 +381,16 @@ def _warm_find(ar, warm, keys):
 
 
 @inner
+def _heights(ar, point, order, gravity):
+    """The contact points in ``order`` along -gravity (m times |g|: an order, not a
+    length; all 0 without gravity)."""
+    out = empty_f(ar, order.shape[0])
+    for q in range(order.shape[0]):
+        out[q] = -(point[order[q], 0] * gravity[0] + point[order[q], 1] * gravity[1])
+    return out
+
+
+@inner
 def _record_batch(ints, floats, sel, rows, work, res, converged):
     """``SolverStats.record_batch`` of the islands with ``sel``."""
     n = 0
@@ -407,9 +417,10 @@ def _record_batch(ints, floats, sel, rows, work, res, converged):
 
 @inner(machine_inline=True)
 def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b_t, box, mu_lo,
-           mu_hi, mu_s, mu_d, at, todo, warm, st, ints, floats, msgs, n_msgs):
+           mu_hi, mu_s, mu_d, at, height, todo, warm, st, ints, floats, msgs, n_msgs):
     """``TimeStepper._solve`` (arrays in island order; ``at``: each contact's place in the
-    previous step's ``warm``, -1 where new): the impulses and the row states of the small
+    previous step's ``warm``, -1 where new; ``height``: the contact point along -gravity,
+    the order PGS sweeps a pile in): the impulses and the row states of the small
     islands' answers, or ``ok`` False where the compiled Dantzig missed ``lcp_tol`` (the
     reference step takes over)."""
     k = a.shape[0]
@@ -462,7 +473,7 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
                                         bodies.inv_mass, bodies.inv_inertia, b_n, b_t, box, lo,
                                         hi, x_n, x_t, v_t_new, zeros_f2(ar, n_bodies, 3),
                                         st.pgs_tol_mps, st.pgs_max_sweeps, st.pgs_check,
-                                        st.pgs_omega, st.pgs_momentum)
+                                        st.pgs_omega, st.pgs_momentum, height)
             conv = empty_b(ar, n_isl)
             for i in range(n_isl):
                 conv[i] = vres[i] <= st.pgs_tol_mps
@@ -754,7 +765,8 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
                 ar, n, starts, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o, bodies, b_no,
                 gather(ar, v_t_free, order), gather(ar, box, order), gather(ar, mu_lo, order),
                 gather(ar, mu_hi, order), gather(ar, mu_s, order), gather(ar, mu_d, order),
-                gather(ar, at, order), neg, warm, st, step_ints, step_floats, msgs, step_msgs)
+                gather(ar, at, order), _heights(ar, point, order, bodies.gravity), neg, warm, st,
+                step_ints, step_floats, msgs, step_msgs)
             if not ok_solve:
                 return REFERENCE, warm, approach
             for q in range(m):

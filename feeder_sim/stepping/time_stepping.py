@@ -58,7 +58,11 @@ island's problem is the ``dynamics.assemble`` layout (normals, then the friction
   is an answer of the same LCP; where the LCP has one, Dantzig's to round-off;
 * larger islands (piles): projected Gauss-Seidel in velocity form (``_island_kernels.solve_pgs``,
   SOR factor ``pgs_omega``), warm-started with the previous step's impulses of the same
-  vertex-edge features, each normal followed by its friction row, and every ``pgs_check``
+  vertex-edge features, each normal followed by its friction row, an island's contacts
+  bottom-up (by height along gravity: consecutive rows then mostly belong to parts side by
+  side, not to one body whose new velocity each must wait for; 4-7 % less wall time for
+  converged piles, 4 % more at 10 sweeps, where sorting is a larger share), and every
+  ``pgs_check``
   sweeps a step of Silcowitz, Niebe and Erleben's nonsmooth nonlinear conjugate gradient
   (``pgs_momentum``; Silcowitz-Hansen, Niebe, Erleben, "A nonsmooth nonlinear conjugate
   gradient method for interactive contact force problems", The Visual Computer 26, 2010):
@@ -913,6 +917,9 @@ class TimeStepper(StepperBase):
         small = todo & (rows <= st.direct_max_rows)
         large = todo & ~small
         x_n, x_t, states_in = self._warm.lookup(keys)
+        point = cs.contacts.point[order]
+        # the order PGS sweeps a pile in: bottom-up (_time_stepping_kernels._heights)
+        height = -(point[:, 0] * w.gravity[0] + point[:, 1] * w.gravity[1])
         if not st.reuse_row_states:
             states_in[:] = -1
         if large.any():
@@ -942,7 +949,7 @@ class TimeStepper(StepperBase):
                 res, vres, work = K.solve_pgs(heap_state(), large, *data, lo, hi, x_n, x_t,
                                               v_t_new, np.zeros((w.n, 3)), st.pgs_tol_mps,
                                               st.pgs_max_sweeps, st.pgs_check, st.pgs_omega,
-                                              st.pgs_momentum)
+                                              st.pgs_momentum, height)
                 conv = vres[large] <= st.pgs_tol_mps
                 stats.record_batch(rows[large], work[large], res[large], conv, 'pgs')
                 stats.pgs_solves += int(large.sum())
