@@ -56,31 +56,29 @@ island's problem is the ``dynamics.assemble`` layout (normals, then the friction
   (normal rows only) likewise start from the row states their contacts ended their last
   projection in (one part hopping at dt = 1e-4: 0.43 -> 0.04 pivots per step in all). It
   is an answer of the same LCP; where the LCP has one, Dantzig's to round-off;
-* larger islands (piles): projected Gauss-Seidel in velocity form (``_island_kernels.solve_pgs``,
-  SOR factor ``pgs_omega``), warm-started with the previous step's impulses of the same
-  vertex-edge features, each normal followed by its friction row, an island's contacts
-  bottom-up (by height along gravity: consecutive rows then mostly belong to parts side by
-  side, not to one body whose new velocity each must wait for; 4-7 % less wall time for
-  converged piles, 4 % more at 10 sweeps, where sorting is a larger share), and every
-  ``pgs_check``
-  sweeps a step of Silcowitz, Niebe and Erleben's nonsmooth nonlinear conjugate gradient
-  (``pgs_momentum``; Silcowitz-Hansen, Niebe, Erleben, "A nonsmooth nonlinear conjugate
-  gradient method for interactive contact force problems", The Visual Computer 26, 2010):
-  the impulses move on along the previous direction, scaled by the ratio of the last two
-  sweeps' squared changes, and are projected back into their bounds. It takes the 200-part
-  pile of the throughput benchmark from 62 to 39 sweeps per solve, islands of a 1000-part
-  one from 740-1 100 to 360-510, and cuts the sweeps to a tight tolerance (1e-8 m/s)
-  five- to tenfold. Pivoting does not scale:
-  every pivot solves the clamped system, so a pile's 1 070-row island took 1 250 pivots and
-  5-7 s in the numba Dantzig, against 1.2-1.5 ms for PGS to 1e-3 m/s. Above ~50 rows one
-  Dantzig solve already costs more than a whole step of the pile benchmark. PGS stops when
-  its velocity residual, the largest velocity change one more sweep would make
-  (``A_ii |x_i - proj(x_i - w_i / A_ii)|``, m/s), is <= ``pgs_tol_mps``, or after
-  ``pgs_max_sweeps``; an island that ends above the tolerance counts as unconverged. The
-  ``lcp.residual`` of every PGS answer is recorded too (``stats.max_residual``); it is not the
-  stopping test because it scales with the island's largest ``|b|`` (the approach speed of
-  the fastest landing part). PGS answers are approximate (velocity errors up to
-  ``pgs_tol_mps``), which is the usual price of a throughput method for piles.
+* larger islands (piles): projected Gauss-Seidel in velocity form
+  (``_island_kernels.solve_pgs``, SOR factor ``pgs_omega``), warm-started with the previous
+  step's impulses of the same vertex-edge features, each normal followed by its friction row, an
+  island's contacts bottom-up (by height along gravity: consecutive rows then mostly belong to
+  parts side by side, not to one body whose new velocity each must wait for; 4-7 % less wall
+  time for converged piles, 4 % more at 10 sweeps, where sorting is a larger share), and every
+  ``pgs_check`` sweeps a step of Silcowitz, Niebe and Erleben's nonsmooth nonlinear conjugate
+  gradient (``pgs_momentum``; Silcowitz-Hansen, Niebe, Erleben, "A nonsmooth nonlinear conjugate
+  gradient method for interactive contact force problems", The Visual Computer 26, 2010): the
+  impulses move on along the previous direction, scaled by the ratio of the last two sweeps'
+  squared changes, and are projected back into their bounds. It takes the 200-part pile of the
+  throughput benchmark from 62 to 39 sweeps per solve, islands of a 1000-part one from 740-1 100
+  to 360-510, and cuts the sweeps to a tight tolerance (1e-8 m/s) five- to tenfold. Pivoting
+  does not scale: every pivot solves the clamped system, so a pile's 1 070-row island took 1 250
+  pivots and 5-7 s in the numba Dantzig, against 1.2-1.5 ms for PGS to 1e-3 m/s. Above ~50 rows
+  one Dantzig solve already costs more than a whole step of the pile benchmark. PGS stops when
+  its velocity residual, the largest velocity change one more sweep would make (``A_ii |x_i -
+  proj(x_i - w_i / A_ii)|``, m/s), is <= ``pgs_tol_mps``, or after ``pgs_max_sweeps``; an island
+  that ends above the tolerance counts as unconverged. The ``lcp.residual`` of every PGS answer
+  is recorded too (``stats.max_residual``); it is not the stopping test because it scales with
+  the island's largest ``|b|`` (the approach speed of the fastest landing part). PGS answers are
+  approximate (velocity errors up to ``pgs_tol_mps``), which is the usual price of a throughput
+  method for piles.
 
 Compiled paths and their references
 -----------------------------------
