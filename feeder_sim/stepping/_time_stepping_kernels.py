@@ -417,10 +417,11 @@ def _record_batch(ints, floats, sel, rows, work, res, converged):
 
 @inner(machine_inline=True)
 def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b_t, box, mu_lo,
-           mu_hi, mu_s, mu_d, at, height, todo, warm, st, ints, floats, msgs, n_msgs):
+           mu_hi, mu_s, mu_d, at, point, order, todo, warm, st, ints, floats, msgs, n_msgs):
     """``TimeStepper._solve`` (arrays in island order; ``at``: each contact's place in the
-    previous step's ``warm``, -1 where new; ``height``: the contact point along -gravity,
-    the order PGS sweeps a pile in): the impulses and the row states of the small
+    previous step's ``warm``, -1 where new; ``point``: the contact points in the step's
+    order, which ``order`` maps to island order; PGS sweeps a pile bottom-up by them): the
+    impulses and the row states of the small
     islands' answers, or ``ok`` False where the compiled Dantzig missed ``lcp_tol`` (the
     reference step takes over)."""
     k = a.shape[0]
@@ -441,6 +442,8 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
         small[i] = todo[i] and rows[i] <= st.direct_max_rows
         large[i] = todo[i] and not small[i]
         any_large = any_large or large[i]
+    # the order PGS sweeps a pile in: bottom-up; nothing to sort without a pile
+    height = _heights(ar, point, order, bodies.gravity) if any_large else empty_f(ar, 0)
     may_slide = empty_b(ar, k)
     any_slide = False
     for q in range(k):
@@ -765,8 +768,8 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
                 ar, n, starts, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o, bodies, b_no,
                 gather(ar, v_t_free, order), gather(ar, box, order), gather(ar, mu_lo, order),
                 gather(ar, mu_hi, order), gather(ar, mu_s, order), gather(ar, mu_d, order),
-                gather(ar, at, order), _heights(ar, point, order, bodies.gravity), neg, warm, st,
-                step_ints, step_floats, msgs, step_msgs)
+                gather(ar, at, order), point, order, neg, warm, st, step_ints, step_floats,
+                msgs, step_msgs)
             if not ok_solve:
                 return REFERENCE, warm, approach
             for q in range(m):

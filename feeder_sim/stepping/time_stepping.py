@@ -915,12 +915,12 @@ class TimeStepper(StepperBase):
         small = todo & (rows <= st.direct_max_rows)
         large = todo & ~small
         x_n, x_t, states_in = self._warm.lookup(keys)
-        point = cs.contacts.point[order]
-        # the order PGS sweeps a pile in: bottom-up (_time_stepping_kernels._heights)
-        height = -(point[:, 0] * w.gravity[0] + point[:, 1] * w.gravity[1])
         if not st.reuse_row_states:
             states_in[:] = -1
         if large.any():
+            # the order PGS sweeps a pile in: bottom-up (_time_stepping_kernels._heights)
+            point = cs.contacts.point[order]
+            height = -(point[:, 0] * w.gravity[0] + point[:, 1] * w.gravity[1])
             # PGS starts from the previous step's impulses (Dantzig from scratch)
             if not todo.all():
                 x_n[~todo[isl]] = 0.0   # trivial islands: zero impulses, not last step's
