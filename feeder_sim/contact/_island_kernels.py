@@ -803,6 +803,22 @@ def _push_all(dv, dv0, P, R, k, ia, ib, col, d):
     _push(P, R, k, ia, ib, col, d)
 
 
+@inner(inline='always')
+def _conjugate_row(x, p, g, k, beta, lo, hi, dv, dv0, P, R, ia, ib, col):
+    """Row k of ``_momentum``: x moves by beta p into [lo, hi]; only what the bounds cut off
+    is pushed through the contact (``R`` columns from ``col``). The direction becomes the
+    row's whole change since the last step; returns the new x."""
+    free = x[k] + beta * p[k]
+    new = min(max(free, lo), hi)
+    cut = new - free
+    if cut != 0.0:
+        _push_all(dv, dv0, P, R, k, ia, ib, col, cut)
+    p[k] = g[k] + (new - x[k])
+    x[k] = new
+    g[k] = 0.0
+    return new
+
+
 @inner
 def _momentum(lo_c, hi_c, a, b, R, bodies, dv, dv0, P, box, mu_lo, mu_hi, x_n, x_t, g_n, g_t,
               p_n, p_t, rr_old):
@@ -842,22 +858,9 @@ def _momentum(lo_c, hi_c, a, b, R, bodies, dv, dv0, P, box, mu_lo, mu_hi, x_n, x
             dv0[i, j] = dv[i, j]
     for k in range(lo_c, hi_c):
         ia, ib = a[k], b[k]
-        free = x_n[k] + beta * p_n[k]
-        xn = free if free > 0.0 else 0.0
-        cut = xn - free
-        if cut != 0.0:
-            _push_all(dv, dv0, P, R, k, ia, ib, 6, cut)
-        p_n[k] = g_n[k] + (xn - x_n[k])
-        x_n[k] = xn
-        g_n[k] = 0.0
-        free = x_t[k] + beta * p_t[k]
-        xt = min(max(free, -mu_lo[k] * xn), mu_hi[k] * xn) if box[k] else 0.0
-        cut = xt - free
-        if cut != 0.0:
-            _push_all(dv, dv0, P, R, k, ia, ib, 18, cut)
-        p_t[k] = g_t[k] + (xt - x_t[k])
-        x_t[k] = xt
-        g_t[k] = 0.0
+        xn = _conjugate_row(x_n, p_n, g_n, k, beta, 0.0, np.inf, dv, dv0, P, R, ia, ib, 6)
+        lo, hi = (-mu_lo[k] * xn, mu_hi[k] * xn) if box[k] else (0.0, 0.0)
+        _conjugate_row(x_t, p_t, g_t, k, beta, lo, hi, dv, dv0, P, R, ia, ib, 18)
     return rr
 
 
