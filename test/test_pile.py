@@ -6,7 +6,10 @@ Gauss-Seidel. Each compiled path is checked against the code it replaced while t
 the per-contact rows (``_island_kernels.contact_rows``) bit for bit against numpy, the position
 projection (``solve_small`` on the normal rows) against ``lcp.solve`` island by island, the PGS
 kernel bit for bit against a plain transcription, and the vectorised impulse log bit for bit
-against a running sum per feature.
+against a running sum per feature. The PGS answers themselves are held to Baraff-Dantzig, to
+their assembled LCPs, and to a stack of boxes in closed form: resting (each interface carries
+the weight above) and sliding as one body (x = a t^2 / 2), at the piles' step and at four times
+it.
 """
 
 import math
@@ -742,3 +745,76 @@ def test_arenas_too_small_give_the_same_steps_and_grow():
     assert roomy.state.position.tobytes() == cramped.state.position.tobytes()
     assert roomy.state.velocity.tobytes() == cramped.state.velocity.tobytes()
     assert all(a.buf.shape[0] > 1024 for a in cramped._stepper._arenas)
+
+
+G, PGS_TOL = 9.81, 1e-9      # m/s^2; the stacks' PGS velocity residual, m/s
+STACK = 6
+BOX_KG = 0.01
+
+
+def box_stack(n_boxes, tilt_rad, h, mu_track, mu_boxes, momentum, compiled):
+    """``n_boxes`` flat 40 x 5 mm boxes (10 g) stacked exactly touching on a level, still
+    track, gravity tilted by ``tilt_rad``, every island through PGS to 1e-9 m/s."""
+    scene = conveyor(psi=math.radians(30.0), mu=mu_track, theta=0.0, gamma=1.0,
+                     frequency_hz=50.0, method='time_stepping', time_step=h, n_parts=n_boxes,
+                     track_length=0.4, spacing=0.05)
+    del scene['bodies'][0]['vibration']
+    for k, body in enumerate(scene['bodies'][1:]):
+        body['polygon'] = [[-0.02, -0.0025], [0.02, -0.0025], [0.02, 0.0025], [-0.02, 0.0025]]
+        body['pose'] = [0.0, 0.0025 + 0.005 * k, 0.0]
+        body['mu_static'] = body['mu_dynamic'] = mu_boxes
+    scene['gravity'] = [G * math.sin(tilt_rad), -G * math.cos(tilt_rad)]
+    return Simulator(build(scene), settings=TS.TimeStepSettings(
+        compiled=compiled, direct_max_rows=0, pgs_tol_mps=PGS_TOL, pgs_max_sweeps=100_000,
+        pgs_momentum=momentum))
+
+
+
+@pytest.mark.parametrize('h', [1e-3, 4e-3])         # the piles' step, and four times it
+@pytest.mark.parametrize('momentum', [True, False])
+def test_a_resting_stack_carries_the_weight_above_each_interface(h, momentum):
+    """Statics: tilted 15 deg (below the friction angle, and the stack stays upright), the
+    boxes stay put and the impulse the layer below gives box k in each step is the weight
+    of boxes k..n-1 times h, whatever the split between the corners (the PGS answer, the
+    conjugate steps and the bottom-up order included). Bound: the velocity residual
+    ``PGS_TOL`` of every box, ten times over, against one box's weight impulse."""
+    sim = box_stack(STACK, math.radians(15.0), h, 0.5, 0.5, momentum, compiled=False)
+    g = sim.world.gravity
+    start = sim.state.position.copy()
+    worst = 0.0
+    for _ in range(int(round(0.1 / h))):
+        sc = sim._stepper.step(sim.state)
+        c = sc.cs.contacts
+        on_a = sc.normal_impulse[:, None] * c.normal + sc.tangent_impulse[:, None] * sc.cs.tangent
+        assert sim.stats.pgs_solves and not sim.stats.unconverged
+        for k in range(STACK):
+            upper, lower = k + 1, k             # body 0 is the track
+            got = np.zeros(2)
+            for q in range(len(on_a)):
+                if {int(c.body_a[q]), int(c.body_b[q])} == {upper, lower}:
+                    got += on_a[q] if c.body_a[q] == upper else -on_a[q]
+            want = -(STACK - k) * BOX_KG * g * h
+            worst = max(worst, float(np.abs(got - want).max()) / (BOX_KG * G * h))
+    # measured: 4.5e-7 and 3.7e-7 (1 ms), 8.8e-8 and 4.6e-8 (4 ms); drift 1e-11 m
+    assert worst <= 10 * STACK * PGS_TOL / (G * h)
+    assert np.abs(sim.state.position - start).max() <= 1e-9
+
+
+@pytest.mark.parametrize('h', [1e-3, 4e-3])
+@pytest.mark.parametrize('momentum', [True, False])
+def test_a_stack_slides_as_one_body_down_the_closed_form(h, momentum):
+    """Dynamics: tilted 30 deg, the track's contact mu sqrt(0.2 x 0.8) = 0.4 < tan 30 deg, the
+    boxes' 0.8 (each interface needs 0.4 of its normal impulse: they stick). The stack slides
+    as one body with a = g (sin 30 - 0.4 cos 30) from rest: x = a t^2 / 2 and v = a t, which
+    the midpoint scheme integrates exactly at constant acceleration, so what is left is
+    the PGS tolerance. The compiled whole step, as a run takes it."""
+    tilt = math.radians(30.0)
+    sim = box_stack(STACK, tilt, h, 0.2, 0.8, momentum, compiled=True)
+    x0, y0 = sim.state.position[1:, 0].copy(), sim.state.position[1:, 1].copy()
+    sim.advance(0.1)
+    acc = G * (math.sin(tilt) - math.sqrt(0.2 * 0.8) * math.cos(tilt))
+    assert sim.stats.pgs_solves and not sim.stats.unconverged
+    # measured: within 7e-10 of x, 5e-10 m/s of v, 1e-11 m of y at both steps
+    assert np.allclose(sim.state.position[1:, 0] - x0, 0.5 * acc * sim.t ** 2, rtol=1e-8, atol=0)
+    assert np.abs(sim.state.velocity[1:, 0] - acc * sim.t).max() <= 10 * PGS_TOL
+    assert np.abs(sim.state.position[1:, 1] - y0).max() <= 1e-9
