@@ -367,6 +367,47 @@ class RowSettings(NamedTuple):
     reach_m: float              # distance a point can travel in the step
 
 
+@inner(inline='always')
+def _free_velocity(i, ia, ib, point, normal, position, v_end, w_end, r_a, r_b):
+    """Contact i's lever arms (written to ``r_a[i]``, ``r_b[i]``, m, from the bodies'
+    ``position``) and its normal and tangential velocity (m/s) at the free end-of-step
+    velocities ``v_end`` / ``w_end`` (``contact_velocities``)."""
+    for q in range(2):
+        r_a[i, q] = point[i, q] - position[ia, q]
+        r_b[i, q] = point[i, q] - position[ib, q]
+    return _contact_velocity(i, ia, ib, normal[i, 0], normal[i, 1], r_a, r_b, v_end, w_end)
+
+
+@inner(inline='always')
+def _kept(pile, gap, vn_free, width_a, width_b, settings):
+    """``contact_rows``' choice for one contact: (kept, speculative, allowance m)."""
+    touch, h = settings.touch_m, settings.h_s
+    if pile or gap <= touch or gap + 0.5 * h * vn_free <= touch:
+        return True, False, 0.0
+    d = settings.spec_depth * (width_a if width_a < width_b else width_b)
+    if gap + d <= settings.reach_m:
+        return True, True, d
+    return False, False, 0.0
+
+
+@inner(machine_inline=True)
+def any_kept_inline(ar, a, b, point, normal, gap, position, v_end, w_end, piece_a, piece_b,
+                    piece_width, settings):
+    """Whether :func:`contact_rows_inline` keeps any of these contacts, none of which is in a
+    pile (the caller knows: ``2 k <= max_rows``). A step whose contacts all stay apart
+    builds no islands and no rows."""
+    n = a.shape[0]
+    r_a = empty_f2(ar, n, 2)
+    r_b = empty_f2(ar, n, 2)
+    for i in range(n):
+        vn_free = _free_velocity(i, a[i], b[i], point, normal, position, v_end, w_end, r_a,
+                                 r_b)[0]
+        if _kept(False, gap[i], vn_free, piece_width[piece_a[i]], piece_width[piece_b[i]],
+                 settings)[0]:
+            return True
+    return False
+
+
 @jit
 def contact_rows(ar, a, b, point, normal, gap, order, starts, position, v_end, w_end, v_pre,
                  w_pre, mu_s_body, mu_d_body, e_body, piece_a, piece_b, piece_width, settings):
@@ -399,8 +440,7 @@ def contact_rows_inline(ar, a, b, point, normal, gap, order, starts, position, v
     h, touch, max_rows = settings.h_s, settings.touch_m, settings.max_rows
     push_out, push_max, slop = settings.push_out, settings.push_max_mps, settings.slop_m
     collide_speed, slip_tol = settings.collide_speed_mps, settings.slip_tol_mps
-    friction_impulse, spec_depth = settings.friction_impulse, settings.spec_depth
-    reach = settings.reach_m
+    friction_impulse = settings.friction_impulse
     n = a.shape[0]
     size = empty_i(ar, n)
     for i in range(starts.shape[0] - 1):
@@ -411,29 +451,18 @@ def contact_rows_inline(ar, a, b, point, normal, gap, order, starts, position, v
     vn_free = empty_f(ar, n)
     vt_free = empty_f(ar, n)
     keep = empty_i(ar, n)
-    allow = zeros_f(ar, n)
-    spec = full_b(ar, n, False)
+    allow = empty_f(ar, n)
+    spec = empty_b(ar, n)
     m = 0
     for i in range(n):
-        ia, ib = a[i], b[i]
-        for q in range(2):
-            r_a[i, q] = point[i, q] - position[ia, q]
-            r_b[i, q] = point[i, q] - position[ib, q]
-        # contact_velocities at the end-of-step free velocities
-        vn_free[i], vt_free[i] = _contact_velocity(i, ia, ib, normal[i, 0], normal[i, 1], r_a,
-                                                   r_b, v_end, w_end)
-        if (2 * size[i] > max_rows or gap[i] <= touch
-                or gap[i] + 0.5 * h * vn_free[i] <= touch):
+        vn_free[i], vt_free[i] = _free_velocity(i, a[i], b[i], point, normal, position, v_end,
+                                                w_end, r_a, r_b)
+        kept, spec[i], allow[i] = _kept(2 * size[i] > max_rows, gap[i], vn_free[i],
+                                        piece_width[piece_a[i]], piece_width[piece_b[i]],
+                                        settings)
+        if kept:
             keep[m] = i
             m += 1
-        else:
-            wa, wb = piece_width[piece_a[i]], piece_width[piece_b[i]]
-            d = spec_depth * (wa if wa < wb else wb)
-            if gap[i] + d <= reach:
-                allow[i] = d
-                spec[i] = True
-                keep[m] = i
-                m += 1
     keep = keep[:m]
     tangent = empty_f2(ar, m, 2)
     ra = empty_f2(ar, m, 2)

@@ -65,6 +65,7 @@ from feeder_sim.contact._collision_kernels import (
 )
 from feeder_sim.contact._island_kernels import (
     _contact_velocity,
+    any_kept_inline,
     apply_impulses_inline,
     contact_rows_inline,
     drift_inline,
@@ -664,18 +665,24 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
         piece_b = gather(ar, shapes.vertex_piece, edge)
         point = gather_rows(ar, w, vert)
         normal = gather_rows(ar, nw, edge)
-        order, starts, isl_bodies, body_starts = island_groups_inline(ar, n, dynamic, body_a,
-                                                                      body_b)
         slip_tol = _larger(st.slip_tol_mps, h * spin)
         settings = RowSettings(h, st.touch_m, st.direct_max_rows, st.push_out, st.push_max_mps,
                                st.slop_m, -2.0 * g * h, slip_tol, st.friction_impulse,
                                st.spec_depth, margin)
-        (keep, tangent, r_a, r_b, mu_s, mu_d, rest, v_n_free, v_t_free, v_t_pre, pile,
-         colliding, b_n, box, mu_lo, mu_hi, gap_min) = contact_rows_inline(
-            ar, body_a, body_b, point, normal, gap, order, starts, mid_pos, end_vel, end_om, vel,
-            om, bodies.mu_static, bodies.mu_dynamic, bodies.restitution, piece_a, piece_b,
-            shapes.piece_width, settings)
-        m = keep.shape[0]
+        # a part hopping over the track or passing near another finds contacts that all stay
+        # apart (a third of the steps of one part conveying). With 2 k <= max_rows no island
+        # is a pile, so then none gets a row and the step builds no islands
+        if 2 * k > st.direct_max_rows or any_kept_inline(
+                ar, body_a, body_b, point, normal, gap, mid_pos, end_vel, end_om, piece_a,
+                piece_b, shapes.piece_width, settings):
+            order, starts, isl_bodies, body_starts = island_groups_inline(ar, n, dynamic,
+                                                                          body_a, body_b)
+            (keep, tangent, r_a, r_b, mu_s, mu_d, rest, v_n_free, v_t_free, v_t_pre, pile,
+             colliding, b_n, box, mu_lo, mu_hi, gap_min) = contact_rows_inline(
+                ar, body_a, body_b, point, normal, gap, order, starts, mid_pos, end_vel, end_om,
+                vel, om, bodies.mu_static, bodies.mu_dynamic, bodies.restitution, piece_a,
+                piece_b, shapes.piece_width, settings)
+            m = keep.shape[0]
     n_spare = 0
     if m:
         rows0, steps0 = rep.counts[0], rep.counts[1]
