@@ -573,9 +573,13 @@ def test_residual_definition():
 
 def test_compiled_dantzig_gives_the_answers_of_the_python_reference():
     # The numba port (contact._lcp_kernels.dantzig) against lcp.solve's Dantzig pass on random
-    # frictional Delassus problems: it converges wherever the reference does, to the same
-    # impulses within 1e-9 of their scale (measured: 6e-12), and takes the same pivots on all
-    # but at most 1 % of the problems (measured: 1 of 256, 24 pivots against 22).
+    # frictional Delassus problems: it converges wherever the reference does, to a solution,
+    # and takes the same pivots on all but at most 1 % of the problems (measured: 1 of 256, 24
+    # pivots against 22; on an AMD EPYC, whose LAPACK rounds the reference's solves
+    # differently, 17 against 16). Where the pivots agree, so do the impulses, within 1e-9 of
+    # their scale (measured: 6e-12); where they do not, a frictional LCP's solution need not
+    # be unique and the two may each have found another one (the EPYC's case: residuals 9e-17
+    # and 3e-17, impulses 60 % apart).
     # Run from scratch arenas of three sizes (none, one that holds some problems, one that holds
     # all), it gives the same bits: where its scratch comes from changes no arithmetic.
     import numba
@@ -599,7 +603,7 @@ def test_compiled_dantzig_gives_the_answers_of_the_python_reference():
         return out
 
     rng = np.random.default_rng(7)
-    compared = same_pivots = 0
+    compared = same_pivots = same_impulses = 0
     for _ in range(300):
         W, Jv, _, _ = random_delassus(rng, int(rng.integers(1, 5)), int(rng.integers(1, 9)))
         c = len(W) // 2
@@ -613,8 +617,11 @@ def test_compiled_dantzig_gives_the_answers_of_the_python_reference():
         compared += 1
         same_pivots += pivots == ref.pivots
         assert residual(p, x) <= 1e-9
-        np.testing.assert_allclose(x, ref.x, rtol=0, atol=1e-9 * np.abs(ref.x).max())
+        same = np.allclose(x, ref.x, rtol=0, atol=1e-9 * np.abs(ref.x).max())
+        same_impulses += same
+        assert same or pivots != ref.pivots
     assert compared >= 200
+    assert same_impulses >= 0.99 * compared
     assert small.state[SHORT] > 0 and large.state[SHORT] == 0   # the fallback was exercised
     assert 0 < large.state[PEAK] < 1 << 20
     assert same_pivots >= 0.99 * compared
