@@ -36,7 +36,6 @@ from pathlib import Path
 import re
 import shutil
 import sys
-import time
 
 import numba
 import numpy as np
@@ -310,33 +309,24 @@ def _make_locator(base: type) -> type:
     return PackageLocator
 
 
-_kernel_load = {'depth': 0, 'since': 0.0, 'total_s': 0.0}
+_load_timer = None   # numba's TimingListener on its compiler lock, once installed
 
 
 def kernel_load_seconds() -> float:
     """Wall time (s) this process has spent in numba's compiler lock: loading kernels from
     the cache and compiling them. A caller timing its own work subtracts what this grew by,
     so that a first use does not count as the work's cost."""
-    k = _kernel_load
-    return k['total_s'] + (time.perf_counter() - k['since'] if k['depth'] else 0.0)
+    timer = _load_timer
+    return timer.duration if timer is not None and timer.done else 0.0
 
 
 def _listen_for_compiles() -> None:
+    global _load_timer
     from numba.core import event
 
-    class LoadTimer(event.Listener):
-        # the lock is re-entrant: time the outermost hold only
-        def on_start(self, ev) -> None:
-            if _kernel_load['depth'] == 0:
-                _kernel_load['since'] = time.perf_counter()
-            _kernel_load['depth'] += 1
-
-        def on_end(self, ev) -> None:
-            _kernel_load['depth'] -= 1
-            if _kernel_load['depth'] == 0:
-                _kernel_load['total_s'] += time.perf_counter() - _kernel_load['since']
-
-    event.register('numba:compiler_lock', LoadTimer())
+    # the lock is re-entrant: numba's timer counts the outermost hold only
+    _load_timer = event.TimingListener()
+    event.register('numba:compiler_lock', _load_timer)
 
     class Notice(event.Listener):
         def on_start(self, ev) -> None:

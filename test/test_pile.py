@@ -769,7 +769,6 @@ def box_stack(n_boxes, tilt_rad, h, mu_track, mu_boxes, momentum, compiled):
         pgs_momentum=momentum))
 
 
-
 @pytest.mark.parametrize('h', [1e-3, 4e-3])         # the piles' step, and four times it
 @pytest.mark.parametrize('momentum', [True, False])
 def test_a_resting_stack_carries_the_weight_above_each_interface(h, momentum):
