@@ -26,7 +26,6 @@ def report(tmp_path_factory):
     return out, first['rows'] + conveying['rows']
 
 
-@pytest.mark.timeout(180)
 def test_every_method_meets_the_stated_tolerance(report):
     _, rows = report
     assert check(rows) == []
@@ -57,7 +56,6 @@ def test_comparison_picks_the_cheapest_and_the_steady_setting():
     assert c['time_stepping'] is None
 
 
-@pytest.mark.timeout(180)
 def test_the_peer_runs_the_same_cases(report):
     pytest.importorskip('pymunk')
     _, rows = report
@@ -68,7 +66,6 @@ def test_the_peer_runs_the_same_cases(report):
     assert 1e-8 < peer['conveying_16hz_3deg_hopping']['error'] < 5e-2
 
 
-@pytest.mark.timeout(180)
 def test_report_files(report):
     out, _ = report
     data = json.loads((out / 'accuracy.json').read_text())
