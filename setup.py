@@ -48,6 +48,8 @@ setup(
     name=package_name,
     version='0.1.0',
     packages=find_packages(exclude=['test', 'benchmarks']),
+    # what a first run compiles, for the helper process that shares the compile
+    package_data={package_name: ['_compile_plans/*.json']},
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),

@@ -40,6 +40,8 @@ import sys
 import numba
 import numpy as np
 
+from feeder_sim import _compile_ahead
+
 JIT_OPTIONS = {'cache': True, 'nogil': True, 'error_model': 'numpy'}
 
 
@@ -88,7 +90,13 @@ _LAST_USED = '.last_used'
 _COLD_COMPILE = '10-100 s'
 
 _state = {'notice_dir': None, 'noticed': False, 'warned': False, 'deferred_codegen': False,
-          'inline_refcounts': False}
+          'inline_refcounts': False, 'expected': None}
+
+
+def expect(method: str) -> None:
+    """Name the stepping method whose kernels this process compiles next: a first compile
+    then shares its work with a helper process (:mod:`._compile_ahead`)."""
+    _state['expected'] = method
 
 
 def cache_root() -> Path:
@@ -313,11 +321,13 @@ _load_timer = None   # numba's TimingListener on its compiler lock, once install
 
 
 def kernel_load_seconds() -> float:
-    """Wall time (s) this process has spent in numba's compiler lock: loading kernels from
-    the cache and compiling them. A caller timing its own work subtracts what this grew by,
-    so that a first use does not count as the work's cost."""
+    """Wall time (s) this process has spent loading kernels from the cache and compiling them
+    (in numba's compiler lock, or waiting for another process compiling one, see
+    :mod:`._compile_ahead`). A caller timing its own work subtracts what this grew by, so that
+    a first use does not count as the work's cost."""
     timer = _load_timer
-    return timer.duration if timer is not None and timer.done else 0.0
+    held = timer.duration if timer is not None and timer.done else 0.0
+    return held + _compile_ahead.lock_wait_seconds()
 
 
 def _listen_for_compiles() -> None:
@@ -338,8 +348,10 @@ def _listen_for_compiles() -> None:
                 return
             _state['noticed'] = True
             where = _state['notice_dir'] or '__pycache__ beside the modules'
-            print(f'{PACKAGE}: compiling numba kernels for first use (about {_COLD_COMPILE}, '
-                  f'cached in {where})', file=sys.stderr, flush=True)
+            helped = bool(_state['expected']) and _compile_ahead.start_helper(_state['expected'])
+            print(f'{PACKAGE}: compiling numba kernels for first use (about {_COLD_COMPILE}'
+                  f'{", in two processes" if helped else ""}, cached in {where})',
+                  file=sys.stderr, flush=True)
 
         def on_end(self, ev) -> None:
             pass
@@ -550,6 +562,10 @@ def install() -> bool:
             _state['inline_refcounts'] = True
     except (ImportError, AttributeError):
         pass  # numba's out-of-line reference counting: slower small steps
+    try:
+        _compile_ahead.install_locks()
+    except (ImportError, AttributeError):
+        pass  # two processes may compile a kernel at once: twice the work, the same code
     try:
         from numba.core import caching
         impl = getattr(caching, 'CacheImpl', None) or caching._CacheImpl

@@ -111,6 +111,9 @@ def test_colcon_installs_where_ros2_run_and_the_ament_index_look(workspace):
     assert (share / 'feeder_sim' / 'package.xml').is_file()
     assert (share / 'feeder_sim' / 'config' / 'track_one_box.yaml').is_file()
     assert (share / 'feeder_sim' / 'config' / 'sim_node.params.yaml').is_file()
+    # the first compile's plans travel with the package
+    plans = install.glob('feeder_sim/lib/python*/site-packages/feeder_sim/_compile_plans/*')
+    assert sorted(p.name for p in plans) == ['event_driven.json']
 
 
 @pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
