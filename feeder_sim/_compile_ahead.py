@@ -10,7 +10,8 @@ them it loads them.
 A plan (``_compile_plans/<method>.json``) is what a first run of the default scene compiled,
 recorded by ``test/compile_plan.py``: every kernel and signature in the order their compiles
 ended, each with its own compile time (callees' excluded) and the kernels its typing asked
-for. :func:`helper_share` picks the helper's part by simulating the two processes.
+for. :func:`helper_share` picks the helper's part, consecutive kernels of that order, by
+simulating the two processes (:func:`simulate`).
 
 Two processes must not compile one kernel at once (twice the work, and numba rewrites a
 kernel's cache index as a whole: the last writer wins). Each compile of a package kernel that
@@ -273,20 +274,18 @@ def simulate(costs: list[float], deps: list[list[int]], share: set[int],
 
 def helper_share(items: list[dict], helper_start_s: float = HELPER_START_S
                  ) -> tuple[list[int], float]:
-    """The helper's items (a tail of the run's order, cut where the simulated wall time is
-    least) and that time (s)."""
+    """The helper's items, a run of consecutive ones in the run's order (the callees of one
+    part of the work), chosen where the simulated wall time is least, and that time (s)."""
     costs = [it['cost_s'] for it in items]
     deps = [it['deps'] for it in items]
-    total = sum(costs)
-    best, best_t = [], total
-    tail = 0.0
-    for cut in range(len(items) - 1, 0, -1):
-        tail += costs[cut]
-        if tail < 0.2 * total or tail > 0.8 * total:
-            continue
-        wall = simulate(costs, deps, set(range(cut, len(items))), helper_start_s)
-        if wall < best_t:
-            best, best_t = list(range(cut, len(items))), wall
+    n = len(items)
+    best, best_t = [], sum(costs)
+    for length in range(n, 0, -1):
+        for first in range(n - length, -1, -1):
+            share = range(first, first + length)
+            wall = simulate(costs, deps, set(share), helper_start_s)
+            if wall < best_t - 1e-9:
+                best, best_t = list(share), wall
     return best, best_t
 
 

