@@ -42,6 +42,28 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _compile(args: argparse.Namespace) -> int:
+    import tempfile
+    import time
+
+    from feeder_sim import _jit
+    from feeder_sim.model.scene import METHODS
+    from feeder_sim.run import run
+    from feeder_sim.simulator import Simulator
+
+    for scene in args.scenes:
+        for method in args.method or METHODS:
+            t0, loading0 = time.perf_counter(), _jit.kernel_load_seconds()
+            # a run as `run` and the node make it, frames recorded: their kernels too
+            with tempfile.TemporaryDirectory() as scratch:
+                run(Simulator(scene, method=method), args.duration,
+                    record=Path(scratch) / 'frames.mcap')
+            print(f'{scene} {method}: {_jit.kernel_load_seconds() - loading0:.1f} s compiling '
+                  f'or loading kernels, {time.perf_counter() - t0:.1f} s in all', flush=True)
+    print(f'cached in {_jit.key_dir()}')
+    return 0
+
+
 def _scenes(_: argparse.Namespace) -> int:
     from feeder_sim.model.scene import scene_dirs, shipped_scenes
 
@@ -208,6 +230,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--workers', type=int, metavar='N',
                    help='local cluster size (default: one process per core)')
     p.set_defaults(func=_study)
+
+    p = sub.add_parser('compile', help='compile the kernels scenes need, ahead of their first '
+                                       'run (a container build, a robot before a shift)')
+    p.add_argument('scenes', nargs='*', default=['track_one_box'],
+                   help='scene files or shipped scene names (default: the default scene)')
+    p.add_argument('--method', choices=METHODS, action='append',
+                   help='a stepping method (repeatable; default: all)')
+    p.add_argument('--duration', type=float, default=0.05,
+                   help='simulated s run on each (default 0.05); a kernel only a rarer event '
+                        'needs compiles when first met')
+    p.set_defaults(func=_compile)
 
     p = sub.add_parser('scenes', help='list the shipped scenes')
     p.set_defaults(func=_scenes)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
+import re
 import signal
 import subprocess
 import sys
@@ -234,3 +235,25 @@ def test_each_shipped_plan_is_what_the_default_run_compiles(method):
     # callees come first (the order compiles ended), so no one waits on a later kernel
     assert all(d < i for i, it in enumerate(plan['items']) for d in it['deps'])
     assert plan['with_helper_s'] < 0.8 * plan['alone_s']
+
+
+def test_feeder_sim_compile_leaves_nothing_for_the_first_run(tmp_path):
+    env = {k: v for k, v in os.environ.items() if not k.startswith(('NUMBA_', 'FEEDER_SIM'))}
+    env.update(FEEDER_SIM_CACHE_DIR=str(tmp_path / 'cache'))
+    root = Path(__file__).resolve().parents[1]
+
+    def cli(*args: str) -> subprocess.CompletedProcess:
+        done = subprocess.run([sys.executable, '-m', 'feeder_sim.cli', *args], cwd=root,
+                              env=env, capture_output=True, text=True, timeout=600)
+        assert done.returncode == 0, done.stderr
+        return done
+
+    ahead = cli('compile', '--method', 'impulse_based')
+    assert NOTICE in ahead.stderr
+    line = ahead.stdout.splitlines()[0]
+    assert line.startswith('track_one_box impulse_based: ')
+    # nearly all of it compiling: the 0.05 s of simulation costs milliseconds
+    loading, total = (float(x) for x in re.findall(r'([\d.]+) s', line))
+    assert loading > 1.0 and loading <= total
+    first = cli('run', 'track_one_box', '--method', 'impulse_based', '--duration', '0.05')
+    assert NOTICE not in first.stderr
