@@ -55,7 +55,12 @@ _held: dict[str, int] = {}               # kernel -> lock file descriptor, this 
 _lock_guard = threading.Lock()
 _recording: list | None = None            # see record()
 _helper: dict = {'process': None}
-_waited = {'s': 0.0}                      # see lock_wait_seconds()
+_waited = {'s': 0.0, 'now': 0}            # see lock_wait_seconds(), waiting()
+
+
+def waiting() -> bool:
+    """Whether a thread of this process is waiting for another process's compile."""
+    return _waited['now'] > 0
 
 
 def lock_wait_seconds() -> float:
@@ -117,14 +122,18 @@ def kernel_lock(name: str) -> Iterator[None]:
     except OSError:
         fd = -1
     deadline = time.monotonic() + LOCK_WAIT_S
-    while fd >= 0:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            break
-        except OSError as e:
-            if e.errno not in (errno.EAGAIN, errno.EACCES) or time.monotonic() > deadline:
-                break   # a file system without locks, or a stopped holder: compile unlocked
-            time.sleep(_POLL_S)
+    _waited['now'] += 1
+    try:
+        while fd >= 0:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except OSError as e:
+                if e.errno not in (errno.EAGAIN, errno.EACCES) or time.monotonic() > deadline:
+                    break   # a file system without locks, or a stopped holder: unlocked
+                time.sleep(_POLL_S)
+    finally:
+        _waited['now'] -= 1
     if outermost:
         _waited['s'] += time.monotonic() - t0
     try:

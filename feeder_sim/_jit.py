@@ -330,6 +330,16 @@ def kernel_load_seconds() -> float:
     return held + _compile_ahead.lock_wait_seconds()
 
 
+_holding = {'depth': 0}   # numba's compiler lock, held by this process: how deep
+
+
+def in_first_use() -> bool:
+    """Whether this process is loading or compiling a kernel now (holding numba's compiler
+    lock, or waiting for another process compiling one). A first compile cannot be cut
+    short; a caller that must stop within a second (the node) does its finishing meanwhile."""
+    return _holding['depth'] > 0 or _compile_ahead.waiting()
+
+
 def _listen_for_compiles() -> None:
     global _load_timer
     from numba.core import event
@@ -337,6 +347,15 @@ def _listen_for_compiles() -> None:
     # the lock is re-entrant: numba's timer counts the outermost hold only
     _load_timer = event.TimingListener()
     event.register('numba:compiler_lock', _load_timer)
+
+    class Holding(event.Listener):
+        def on_start(self, ev) -> None:
+            _holding['depth'] += 1
+
+        def on_end(self, ev) -> None:
+            _holding['depth'] -= 1
+
+    event.register('numba:compiler_lock', Holding())
 
     class Notice(event.Listener):
         def on_start(self, ev) -> None:

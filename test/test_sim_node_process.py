@@ -222,6 +222,39 @@ def test_a_signal_during_start_up_still_exits_0(workspace, tmp_path, processes):
     assert 'Traceback' not in err
 
 
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
+def test_a_signal_during_the_first_compile_exits_0_within_a_second(tmp_path, sig, processes):
+    # a cold kernel cache: the first frame compiles for a minute, which nothing cuts short
+    log = tmp_path / 'cold.mcap'
+    env = {k: v for k, v in os.environ.items() if not k.startswith(('NUMBA_', 'FEEDER_SIM'))}
+    env.update(FEEDER_SIM_CACHE_DIR=str(tmp_path / 'cache'),
+               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    proc = subprocess.Popen([str(VENV_BIN / 'sim_node'), '--ros-args', '-p',
+                             f'record_path:={log}', '-p', 'real_time_factor:=0.0'],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    processes.append(proc)
+    seen = []
+    while not any('compiling numba kernels for first use' in line for line in seen):
+        line = proc.stderr.readline()
+        assert line, ''.join(seen)
+        seen.append(line)
+    time.sleep(1.0)                     # well inside the compile
+    assert proc.poll() is None
+    t0 = time.monotonic()
+    proc.send_signal(sig)
+    proc.wait(timeout=30)
+    elapsed = time.monotonic() - t0
+    err = ''.join(seen) + proc.stderr.read()
+    assert proc.returncode == 0, err
+    assert elapsed < 1.0, err
+    assert 'stopped during a first compile' in err and 'Traceback' not in err
+    with open(log, 'rb') as f:
+        summary = make_reader(f).get_summary()     # finalized: footer and summary written
+    assert summary is not None
+    assert {c.topic for c in summary.channels.values()} >= {'/feeder_sim/part_poses', '/clock'}
+
+
 def run_node(workspace, *argv: str, timeout: float = 120) -> subprocess.CompletedProcess:
     exe = ros2_run_path(workspace['env'], 'feeder_sim', 'sim_node')
     return subprocess.run([str(exe), *argv], env=workspace['env'], capture_output=True,

@@ -62,7 +62,7 @@ from std_msgs.msg import Bool, Float64MultiArray, UInt32
 from std_srvs.srv import SetBool, Trigger
 from visualization_msgs.msg import MarkerArray
 
-from feeder_sim._jit import kernel_load_seconds
+from feeder_sim._jit import in_first_use, kernel_load_seconds
 from feeder_sim.model.scene import METHODS, SceneError
 from feeder_sim.model.vibration import CommandLimits, parse_command
 from feeder_sim.model.world import DYNAMIC
@@ -90,6 +90,9 @@ _SLOW_PERIODS = 3          # diagnostics periods below the requested rate before
 _SLICE_ABOVE_S = 0.5
 _SLICE_WALL_S = 0.1
 _SLICE_FIRST_STEPS = 20_000  # steps of a time-stepped method tried before any cost is known
+# A stop that arrives while a kernel compiles (a minute on a cold cache, not cut short) ends
+# the node from another thread: the log finalized, exit status 0, within this second.
+_FIRST_USE_POLL_S = 0.05
 
 
 @dataclass(frozen=True)
@@ -217,6 +220,7 @@ class SimNode(Node):
         self._limits = CommandLimits(value['max_amplitude_m'], value['max_frequency_hz'])
         self._record_status = 'off'
         self.recorder = None
+        self._closing = threading.Lock()   # the loop and a stop during first use both close
         if value['record_path']:
             self._open_recording(value['record_path'], value['record_flush_period'],
                                  value['log_time'])
@@ -597,7 +601,8 @@ class SimNode(Node):
 
     def close(self) -> None:
         """Finalize the MCAP log (idempotent; safe after the ROS context is shut down)."""
-        recorder, self.recorder = self.recorder, None
+        with self._closing:
+            recorder, self.recorder = self.recorder, None
         if recorder is not None:
             try:
                 recorder.close()
@@ -761,14 +766,17 @@ class SimNode(Node):
         return response
 
 
-def main(args: list[str] | None = None, stop: threading.Event | None = None) -> int:
+def main(args: list[str] | None = None, stop: threading.Event | None = None,
+         wakeup_fd: int | None = None) -> int:
     """Run the node: spin until duration, Ctrl-C or SIGTERM; finalize the log.
 
     SIGINT and SIGTERM only set ``stop``, which the loop reads between callbacks: an exception
     thrown into the middle of a frame (a kernel being compiled, a chunk being written) would
     leave a traceback instead of a clean exit with a finalized log. ``stop`` is given by the
     console entry point (:mod:`feeder_sim.ros.entry`), which sets the handlers up before
-    anything heavy is imported.
+    anything heavy is imported, and passes ``wakeup_fd``, the read end of the signal wake-up
+    pipe. A stop during a kernel's first compile ends the process from another thread
+    (:func:`_end_during_first_use`): ``main`` is the executable's, not a function to embed.
     """
     previous = {}
     if stop is None:
@@ -797,17 +805,47 @@ def main(args: list[str] | None = None, stop: threading.Event | None = None) -> 
     node.stop = stop
     executor = SingleThreadedExecutor()
     executor.add_node(node)
+    loop_done = threading.Event()
+    threading.Thread(target=_end_during_first_use, args=(node, stop, loop_done, wakeup_fd),
+                     name='stop during first use', daemon=True).start()
     try:
         while rclpy.ok() and not node.done and not stop.is_set():
             executor.spin_once(timeout_sec=0.1)
     except ExternalShutdownException:
         pass
     finally:
+        loop_done.set()
         node.close()
         node.destroy_node()
         rclpy.try_shutdown()
         _restore(previous)
     return node.exit_code
+
+
+def _end_during_first_use(node: SimNode, stop: threading.Event, loop_done: threading.Event,
+                          wakeup_fd: int | None) -> None:
+    """After a stop request, end the process here if the loop is held in a kernel's first
+    compile: numba's compile cannot be cut short, and the loop would see the request only
+    when it ends. The log is finalized first (the loop is not writing it: it is compiling),
+    as the loop would; nothing else is left to do that the process's end does not.
+
+    The request is read from the signal wake-up pipe when there is one: ``stop`` is set by
+    the handler, which runs only when the compiling main thread next runs Python."""
+    if wakeup_fd is not None:
+        try:
+            os.read(wakeup_fd, 1)   # a signal number: SIGINT or SIGTERM, the only handled
+        except OSError:
+            return
+        stop.set()
+    else:
+        stop.wait()
+    while not loop_done.wait(_FIRST_USE_POLL_S):
+        if in_first_use():
+            node.close()
+            print('sim_node: stopped during a first compile of the numba kernels; the log is '
+                  'final', file=sys.stderr, flush=True)
+            sys.stdout.flush()
+            os._exit(node.exit_code)
 
 
 def _restore(handlers: dict) -> None:
