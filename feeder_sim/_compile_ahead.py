@@ -97,6 +97,15 @@ def _lock_path(name: str) -> Path | None:
     return folder / name.replace(':', '.')
 
 
+def _open_lock(name: str) -> int:
+    """A descriptor of lock file ``name``, or -1 where there is no shared cache to hold it."""
+    path = _lock_path(name)
+    try:
+        return os.open(path, os.O_RDWR | os.O_CREAT, 0o644) if path is not None else -1
+    except OSError:
+        return -1
+
+
 @contextlib.contextmanager
 def kernel_lock(name: str) -> Iterator[None]:
     """Hold ``name``'s compile lock (bounded wait, see the module).
@@ -116,11 +125,7 @@ def kernel_lock(name: str) -> Iterator[None]:
         yield
         return
     t0 = time.monotonic()
-    path = _lock_path(name)
-    try:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644) if path is not None else -1
-    except OSError:
-        fd = -1
+    fd = _open_lock(name)
     deadline = time.monotonic() + LOCK_WAIT_S
     _waited['now'] += 1
     try:
@@ -161,11 +166,15 @@ def install_locks() -> None:
         return
 
     def locked_compile(self, sig):
-        name = kernel_name(self)
-        if name is None:
-            return compile_(self, sig)
+        # typing asks again at every call site of a kernel compiled already: answered first
         args, _ = sigutils.normalize_signature(sig)
-        if tuple(args) in self.overloads and _recording is None:
+        if _recording is None and tuple(args) in self.overloads:
+            return compile_(self, sig)
+        try:
+            name = self._feeder_sim_kernel
+        except AttributeError:
+            name = self._feeder_sim_kernel = kernel_name(self)
+        if name is None:
             return compile_(self, sig)
         with kernel_lock(name):
             if _recording is None:
@@ -329,8 +338,7 @@ def _exclusive(name: str) -> Iterator[bool]:
     """Hold lock ``name`` if free: whether it was."""
     import fcntl
 
-    path = _lock_path(name)
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644) if path is not None else -1
+    fd = _open_lock(name)
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -386,16 +394,21 @@ def _args(item: dict) -> tuple:
     return pickle.loads(base64.b64decode(item['args']))
 
 
+def cached(dispatcher, args: tuple) -> bool:
+    """Whether ``dispatcher`` has ``args`` compiled here or in its cache's index (read, not
+    loaded). Builds on numba's cache internals: AttributeError if they moved."""
+    if args in dispatcher.overloads:
+        return True
+    cache = dispatcher._cache
+    return cache._index_key(args, dispatcher.targetctx.codegen()) in \
+        cache._cache_file._load_index()
+
+
 def _in_cache(item: dict) -> bool:
-    """Whether ``item`` is in the kernel cache (its index, without loading it); True if that
-    cannot be told (the helper then goes on: the lock keeps the two from compiling it twice)."""
+    """:func:`cached` for a plan's item; True if that cannot be told (the helper then goes on:
+    the lock keeps the two processes from compiling it twice)."""
     try:
-        dispatcher, args = _dispatcher(item), _args(item)
-        if args in dispatcher.overloads:
-            return True
-        cache = dispatcher._cache
-        return cache._index_key(args, dispatcher.targetctx.codegen()) in \
-            cache._cache_file._load_index()
+        return cached(_dispatcher(item), _args(item))
     except Exception:  # noqa: BLE001 (a stale plan, or numba's cache internals moved)
         return True
 

@@ -16,7 +16,7 @@ import sys
 import time
 
 import pytest
-from test_kernel_cache import copy_package, NOTICE, run
+from test_kernel_cache import copy_package, NOTICE, probe_env, run
 
 from feeder_sim import _compile_ahead
 from feeder_sim.run import run as run_scene
@@ -85,12 +85,6 @@ if sys.argv[-1] == 'wait':
 else:
     sys.stdin.readline()
 '''
-
-
-def probe_env(tree: Path, cache: Path) -> dict:
-    env = {k: v for k, v in os.environ.items() if not k.startswith(('NUMBA_', 'FEEDER_SIM'))}
-    env.update(PYTHONPATH=str(tree), FEEDER_SIM_CACHE_DIR=str(cache))
-    return env
 
 
 def start(tree: Path, cache: Path, code: str, *args: str) -> subprocess.Popen:
@@ -234,13 +228,9 @@ def test_each_shipped_plan_is_what_the_default_run_compiles(method):
     assert not unplanned, f'record again: python test/compile_plan.py {method}; {unplanned}'
     # ... and everything planned is in the cache for these sources: used by this run or one
     # before it (a kernel nobody asks for any more would be in no index)
-    stale = []
-    for item in plan['items']:
-        dispatcher, args = _compile_ahead._dispatcher(item), _compile_ahead._args(item)
-        cache = dispatcher._cache
-        key = cache._index_key(args, dispatcher.targetctx.codegen())
-        if args not in dispatcher.overloads and key not in cache._cache_file._load_index():
-            stale.append(f'{item["kernel"]}{tuple(item["signature"])}')
+    stale = [f'{item["kernel"]}{tuple(item["signature"])}' for item in plan['items']
+             if not _compile_ahead.cached(_compile_ahead._dispatcher(item),
+                                          _compile_ahead._args(item))]
     assert not stale, f'record again: python test/compile_plan.py {method}; stale: {stale}'
     # callees come first (the order compiles ended), so no one waits on a later kernel
     assert all(d < i for i, it in enumerate(plan['items']) for d in it['deps'])
@@ -248,9 +238,8 @@ def test_each_shipped_plan_is_what_the_default_run_compiles(method):
 
 
 def test_feeder_sim_compile_leaves_nothing_for_the_first_run(tmp_path):
-    env = {k: v for k, v in os.environ.items() if not k.startswith(('NUMBA_', 'FEEDER_SIM'))}
-    env.update(FEEDER_SIM_CACHE_DIR=str(tmp_path / 'cache'))
     root = Path(__file__).resolve().parents[1]
+    env = probe_env(root, tmp_path / 'cache')
 
     def cli(*args: str) -> subprocess.CompletedProcess:
         done = subprocess.run([sys.executable, '-m', 'feeder_sim.cli', *args], cwd=root,

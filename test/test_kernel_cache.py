@@ -82,10 +82,17 @@ def copy_package(dest: Path, factor: int = 2) -> Path:
     return dest
 
 
+def probe_env(tree: Path, cache: Path) -> dict:
+    """This process's environment for a run of ``tree``'s package on the kernel cache
+    ``cache``, without the caller's numba and feeder_sim settings."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith(('NUMBA_', 'FEEDER_SIM'))}
+    env.update(PYTHONPATH=str(tree), FEEDER_SIM_CACHE_DIR=str(cache))
+    return env
+
+
 def run(tree: Path, cache: Path, code: str = RUN,
         extra_env: dict | None = None) -> tuple[dict | None, str]:
-    env = {k: v for k, v in os.environ.items() if not k.startswith(('NUMBA_', 'FEEDER_SIM'))}
-    env.update(PYTHONPATH=str(tree), FEEDER_SIM_CACHE_DIR=str(cache), **(extra_env or {}))
+    env = {**probe_env(tree, cache), **(extra_env or {})}
     # cwd: not the source tree, whose feeder_sim would shadow the copy
     proc = subprocess.run([sys.executable, '-c', code], cwd=tree, env=env, capture_output=True,
                           text=True, timeout=120)
