@@ -9,20 +9,29 @@ skips counting for arrays without an owner), and the whole step's scratch is rel
 once by resetting the offset.
 
 Kernels see an arena as its ``state`` alone, an int64 array (:data:`BASE` address of the
-buffer, :data:`CAPACITY`, :data:`USED`, :data:`SHORT`, :data:`PEAK`, in bytes), and the
-allocators are inlined where they are called (a call of a numba function costs some 20 ns of
-argument and reference handling, more than a bump of an offset).
+buffer, :data:`CAPACITY`, :data:`USED`, :data:`SHORT`, :data:`PEAK`, in bytes;
+:data:`BLOCKS`, :data:`N_BLOCKS`: the overflow blocks, below), and the allocators are
+inlined where they are called (a call of a numba function costs some 20 ns of argument and
+reference handling, more than a bump of an offset).
+
+An arena's arrays never have an owner, whatever happens: a request the buffer cannot hold is
+served from a block of its own (``malloc``), linked to the arena and freed when the arena is
+released below it; the bytes are counted (``SHORT``) and the owner grows the buffer before
+the next call (:func:`grown_capacity`). numba then knows at compile time that no array of a
+step has an owner and leaves out every reference-count test: when a short buffer fell back
+to ordinary numpy arrays instead, each of some 4 000 hand-overs in the step kept a test and
+a call, and a one-part step ran 1.9 times slower.
+
+Kernels called from Python get a *heap state* instead (:func:`heap_state`, :func:`heap_arena`:
+an int32 array, told apart from an arena by its type when a kernel is compiled): every array
+made from it is an ordinary numpy array that may outlive the call.
 
 Rules that keep that safe:
 
 * An arena array is valid until its arena is released below it (:func:`release` to an
   earlier :func:`mark`, or the next step's reset). Nothing that outlives that may point into
-  it: results a kernel returns to Python are copied out, or come from an arena of capacity
-  0 (:func:`heap_state` from Python, :func:`heap_arena` in a kernel), whose arrays are all
-  ordinary numpy ones.
-* A request the buffer cannot hold is served from the heap and counted (``SHORT`` bytes): the
-  step stays correct and the owner grows the buffer before the next call
-  (:func:`grown_capacity`).
+  it: results a kernel returns to Python are copied out, and the arena is released to 0 (its
+  blocks freed) before it is dropped.
 * The buffer belongs to the Python object holding the :class:`Arena`, which must outlive the
   kernel call. One arena belongs to one stepper; kernels release the GIL, so two threads
   never share one.
@@ -34,38 +43,60 @@ from typing import NamedTuple
 
 import numba
 from numba import types
-from numba.extending import intrinsic, register_jitable
+from numba.extending import intrinsic, overload, register_jitable
 import numpy as np
 
 from feeder_sim._jit import inner
 
-BASE, CAPACITY, USED, SHORT, PEAK = range(5)
+BASE, CAPACITY, USED, SHORT, PEAK, BLOCKS, N_BLOCKS = range(7)
+HEAP_DTYPE = np.int32       # a heap state's dtype; an arena's state is int64
 
-# The allocators are generic functions (``register_jitable``), not dispatchers: numba types
-# them with the plain types of their arguments (a dispatcher is compiled again for every
-# literal it meets: a size of 0, a column count of 3), and LLVM inlines them where they are
-# called (a call of a numba function costs some 20 ns of argument and reference handling).
-_allocator = register_jitable(forceinline=True)
+# The allocators are generic functions (``register_jitable``, ``overload``), not dispatchers:
+# numba types them with the plain types of their arguments (a dispatcher is compiled again
+# for every literal it meets: a size of 0, a column count of 3), and LLVM inlines them where
+# they are called (a call of a numba function costs some 20 ns of argument and reference
+# handling).
+_INLINE = {'forceinline': True}
+_allocator = register_jitable(**_INLINE)
 _ALIGN = 64     # bytes; a cache line, so that no two arrays share one
+_BLOCK_HEADER = 16      # bytes before an overflow block's arrays: the next block's address
+# a mark holds the arena's offset and, above this bit, its count of overflow blocks
+_MARK_SHIFT = 44
 
 
 class Arena(NamedTuple):
     """A scratch buffer and the state kernels allocate from (see the module docstring)."""
 
     buf: np.ndarray     # (capacity,) uint8, owned here
-    state: np.ndarray   # (5,) int64
+    state: np.ndarray   # (7,) int64
+
+
+def _arena_state(address: int, capacity_bytes: int) -> np.ndarray:
+    state = np.zeros(7, np.int64)
+    state[BASE], state[CAPACITY] = address, capacity_bytes
+    return state
 
 
 def new_arena(capacity_bytes: int) -> Arena:
     """An empty arena of ``capacity_bytes``."""
     buf = np.zeros(max(int(capacity_bytes), _ALIGN), np.uint8)
-    return Arena(buf, np.array([buf.ctypes.data, buf.shape[0], 0, 0, 0], np.int64))
+    return Arena(buf, _arena_state(buf.ctypes.data, buf.shape[0]))
 
 
 def grown_capacity(arena: Arena) -> int:
     """The capacity an arena that fell short should have: twice its peak demand (bytes)."""
     state = arena.state
     return int(2 * max(state[CAPACITY], state[PEAK] + state[SHORT]))
+
+
+def heap_state() -> np.ndarray:
+    """A heap state, for kernels called from Python: every array they make is an ordinary
+    numpy array that may outlive the call."""
+    return np.zeros(5, HEAP_DTYPE)
+
+
+def _is_heap(ar) -> bool:
+    return isinstance(ar, types.Array) and ar.dtype == numba.from_dtype(HEAP_DTYPE)
 
 
 @intrinsic
@@ -78,6 +109,33 @@ def _address(typingctx, address, dtype):
         return builder.inttoptr(args[0], context.get_value_type(types.CPointer(item)))
 
     return sig, codegen
+
+
+@intrinsic
+def _malloc(typingctx, nbytes):
+    """The address of ``nbytes`` fresh bytes from numba's allocator, 0 where the system has
+    none left: then :func:`_overflow`'s first write (to address 0) ends the process.
+
+    Neither a raise nor a test here: a MemoryError that can come from every allocation of a
+    step gives each one an exit that numba cleans up after, and even a trap on a null block
+    kept most of the reference counting that arrays without owners save (measured: a
+    one-part step 1.15 and 1.5 times slower; twice as many counting sites left)."""
+    def codegen(context, builder, signature, args):
+        return builder.ptrtoint(context.nrt.allocate_unchecked(builder, args[0]),
+                                context.get_value_type(types.int64))
+
+    return types.int64(types.intp), codegen
+
+
+@intrinsic
+def _free(typingctx, address):
+    """Give back a block of :func:`_malloc`."""
+    def codegen(context, builder, signature, args):
+        context.nrt.free(builder, builder.inttoptr(args[0], context.get_value_type(
+            types.voidptr)))
+        return context.get_dummy_value()
+
+    return types.none(types.int64), codegen
 
 
 @intrinsic
@@ -99,49 +157,86 @@ def borrow(typingctx, x):
 
 @inner
 def heap_arena():
-    """An arena state of capacity 0: every array it gives is an ordinary (heap) numpy array."""
-    return np.zeros(5, np.int64)
+    """A heap state (:func:`heap_state`) made in a kernel."""
+    return np.zeros(5, HEAP_DTYPE)
 
 
 @inner
 def local_arena(buf):
     """An arena state over ``buf`` (uint8), for a kernel that makes its scratch in one
     allocation: ``buf`` must stay in use until the last array carved from it is (numba frees
-    an array after its last use), and results must be copied out before it goes."""
-    state = np.zeros(5, np.int64)
+    an array after its last use), and results must be copied out, and the state released
+    to 0, before it goes."""
+    state = np.zeros(7, np.int64)
     state[BASE] = buf.ctypes.data
     state[CAPACITY] = buf.shape[0]
     return state
 
 
-@_allocator
 def mark(ar) -> int:
     """The arena's level now, for :func:`release`."""
-    return ar[USED]
 
 
-@_allocator
+@overload(mark, jit_options=_INLINE)
+def _mark(ar):
+    if _is_heap(ar):
+        return lambda ar: 0
+    return lambda ar: (ar[N_BLOCKS] << _MARK_SHIFT) | ar[USED]
+
+
 def release(ar, level: int) -> None:
-    """Give back everything handed out since ``mark`` returned ``level``."""
-    if ar[USED] > ar[PEAK]:
-        ar[PEAK] = ar[USED]
-    ar[USED] = level
+    """Give back everything handed out since ``mark`` returned ``level`` (0: everything,
+    the overflow blocks freed)."""
+
+
+@overload(release, jit_options=_INLINE)
+def _release(ar, level):
+    if _is_heap(ar):
+        return lambda ar, level: None
+
+    def impl(ar, level):
+        if ar[USED] > ar[PEAK]:
+            ar[PEAK] = ar[USED]
+        ar[USED] = level & ((1 << _MARK_SHIFT) - 1)
+        if ar[N_BLOCKS] > level >> _MARK_SHIFT:
+            _free_blocks(ar, level >> _MARK_SHIFT)
+    return impl
+
+
+# The overflow path is a call of its own: a cold path, kept out of every inlined site.
+@inner
+def _overflow(ar, nbytes):
+    """The address of ``nbytes`` bytes in a new block linked to the arena (counted)."""
+    block = _malloc(nbytes + _BLOCK_HEADER)
+    numba.carray(_address(block, numba.int64), (1,))[0] = ar[BLOCKS]
+    ar[BLOCKS] = block
+    ar[N_BLOCKS] += 1
+    ar[SHORT] += nbytes
+    return block + _BLOCK_HEADER
+
+
+@inner
+def _free_blocks(ar, keep):
+    """Free the overflow blocks linked after the first ``keep``."""
+    while ar[N_BLOCKS] > keep:
+        block = ar[BLOCKS]
+        ar[BLOCKS] = numba.carray(_address(block, numba.int64), (1,))[0]
+        ar[N_BLOCKS] -= 1
+        _free(block)
 
 
 @_allocator
 def _reserve(ar, nbytes):
-    """Offset of ``nbytes`` fresh bytes, or -1 (counted) when the buffer cannot hold them."""
+    """The address of ``nbytes`` fresh bytes: in the buffer, or in an overflow block."""
     start = (ar[USED] + (_ALIGN - 1)) & -_ALIGN
     end = start + nbytes
     if end > ar[CAPACITY]:
-        if ar[CAPACITY]:
-            ar[SHORT] += nbytes
-        return -1
+        return _overflow(ar, nbytes)
     ar[USED] = end
-    return start
+    return ar[BASE] + start
 
 
-# The heap fallbacks are calls of their own: a cold path, kept out of every inlined site.
+# The heap state's allocations are calls of their own, kept out of every inlined site.
 @inner
 def _heap_f(n):
     return np.empty(n)
@@ -172,40 +267,73 @@ def _heap_like(like, n):
     return np.empty(n, like.dtype)
 
 
-@_allocator
 def empty_f(ar, n):
     """``np.empty(n)``."""
-    at = _reserve(ar, 8 * n)
-    if at < 0:
-        return _heap_f(n)
-    return numba.carray(_address(ar[BASE] + at, numba.float64), (n,))
 
 
-@_allocator
+@overload(empty_f, jit_options=_INLINE)
+def _empty_f(ar, n):
+    if _is_heap(ar):
+        return lambda ar, n: _heap_f(n)
+    return lambda ar, n: numba.carray(_address(_reserve(ar, 8 * n), numba.float64), (n,))
+
+
 def empty_f2(ar, n, m):
     """``np.empty((n, m))``."""
-    at = _reserve(ar, 8 * n * m)
-    if at < 0:
-        return _heap_f2(n, m)
-    return numba.carray(_address(ar[BASE] + at, numba.float64), (n, m))
 
 
-@_allocator
+@overload(empty_f2, jit_options=_INLINE)
+def _empty_f2(ar, n, m):
+    if _is_heap(ar):
+        return lambda ar, n, m: _heap_f2(n, m)
+    return lambda ar, n, m: numba.carray(_address(_reserve(ar, 8 * n * m), numba.float64),
+                                         (n, m))
+
+
 def empty_i(ar, n):
     """``np.empty(n, np.int64)``."""
-    at = _reserve(ar, 8 * n)
-    if at < 0:
-        return _heap_i(n)
-    return numba.carray(_address(ar[BASE] + at, numba.int64), (n,))
 
 
-@_allocator
+@overload(empty_i, jit_options=_INLINE)
+def _empty_i(ar, n):
+    if _is_heap(ar):
+        return lambda ar, n: _heap_i(n)
+    return lambda ar, n: numba.carray(_address(_reserve(ar, 8 * n), numba.int64), (n,))
+
+
+def empty_i2(ar, n, m):
+    """``np.empty((n, m), np.int64)``."""
+
+
+@overload(empty_i2, jit_options=_INLINE)
+def _empty_i2(ar, n, m):
+    if _is_heap(ar):
+        return lambda ar, n, m: _heap_i2(n, m)
+    return lambda ar, n, m: numba.carray(_address(_reserve(ar, 8 * n * m), numba.int64),
+                                         (n, m))
+
+
 def empty_b(ar, n):
     """``np.empty(n, np.bool_)``."""
-    at = _reserve(ar, n)
-    if at < 0:
-        return _heap_b(n)
-    return numba.carray(_address(ar[BASE] + at, numba.boolean), (n,))
+
+
+@overload(empty_b, jit_options=_INLINE)
+def _empty_b(ar, n):
+    if _is_heap(ar):
+        return lambda ar, n: _heap_b(n)
+    return lambda ar, n: numba.carray(_address(_reserve(ar, n), numba.boolean), (n,))
+
+
+def empty_like(ar, like, n):
+    """``np.empty(n, like.dtype)`` (``like`` a 1-d array)."""
+
+
+@overload(empty_like, jit_options=_INLINE)
+def _empty_like(ar, like, n):
+    if _is_heap(ar):
+        return lambda ar, like, n: _heap_like(like, n)
+    return lambda ar, like, n: numba.carray(_address(_reserve(ar, like.itemsize * n), like),
+                                            (n,))
 
 
 @_allocator
@@ -286,24 +414,11 @@ def copy_i(ar, src):
 @_allocator
 def full_i2(ar, n, m, value):
     """``np.full((n, m), value, np.int64)``."""
-    at = _reserve(ar, 8 * n * m)
-    if at < 0:
-        x = _heap_i2(n, m)
-    else:
-        x = numba.carray(_address(ar[BASE] + at, numba.int64), (n, m))
+    x = empty_i2(ar, n, m)
     for i in range(n):
         for j in range(m):
             x[i, j] = value
     return x
-
-
-@_allocator
-def empty_like(ar, like, n):
-    """``np.empty(n, like.dtype)`` (``like`` a 1-d array)."""
-    at = _reserve(ar, like.itemsize * n)
-    if at < 0:
-        return _heap_like(like, n)
-    return numba.carray(_address(ar[BASE] + at, like), (n,))
 
 
 @_allocator
@@ -336,8 +451,3 @@ def concat(ar, x, y):
         out[n + q] = y[q]
     return out
 
-
-def heap_state() -> np.ndarray:
-    """An arena state of capacity 0, for kernels called from Python: every array they make is
-    an ordinary numpy array that may outlive the call."""
-    return np.zeros(5, np.int64)

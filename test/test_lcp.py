@@ -580,24 +580,31 @@ def test_compiled_dantzig_gives_the_answers_of_the_python_reference():
     # their scale (measured: 6e-12); where they do not, a frictional LCP's solution need not
     # be unique and the two may each have found another one (the EPYC's case: residuals 9e-17
     # and 3e-17, impulses 60 % apart).
-    # Run from scratch arenas of three sizes (none, one that holds some problems, one that holds
-    # all), it gives the same bits: where its scratch comes from changes no arithmetic.
+    # Run from a heap state and from scratch arenas of two sizes (one that holds some problems,
+    # one that holds all), it gives the same bits: where its scratch comes from changes no
+    # arithmetic.
     import numba
 
-    from feeder_sim._arena import borrow, new_arena, PEAK, SHORT, USED
+    from feeder_sim._arena import borrow, heap_state, new_arena, PEAK, release, SHORT
     from feeder_sim.contact._lcp_kernels import dantzig as inner_dantzig
 
     @numba.njit
     def run(state, A, b, nof, lo, hi, max_pivots):   # the kernel has no Python wrapper
         return inner_dantzig(borrow(state), A, b, nof, lo, hi, max_pivots)
 
-    heap, small, large = np.zeros(5, np.int64), new_arena(2048), new_arena(1 << 20)
+    @numba.njit
+    def run_copied(state, A, b, nof, lo, hi, max_pivots):
+        release(state, 0)
+        x, pivots, code, retry, _ = inner_dantzig(borrow(state), A, b, nof, lo, hi,
+                                                  max_pivots)
+        return x.copy(), pivots, code, retry
+
+    heap, small, large = heap_state(), new_arena(2048), new_arena(1 << 20)
 
     def dantzig(A, b, nof, lo, hi, max_pivots):
         out = run(heap, A, b, nof, lo, hi, max_pivots)
         for arena in (small, large):
-            arena.state[USED] = 0
-            x, pivots, code, retry, _ = run(arena.state, A, b, nof, lo, hi, max_pivots)
+            x, pivots, code, retry = run_copied(arena.state, A, b, nof, lo, hi, max_pivots)
             assert (pivots, code, retry) == out[1:4]
             assert x.tobytes() == out[0].tobytes()
         return out
@@ -640,7 +647,7 @@ def test_a_solve_on_given_row_states_is_taken_only_where_it_solves_the_lcp(frict
     #   states are turned down (measured: 86 of 283 and 113 of 249 taken).
     import numba
 
-    from feeder_sim._arena import borrow
+    from feeder_sim._arena import borrow, heap_state
     from feeder_sim.contact._island_kernels import STATES_TOL
     from feeder_sim.contact._lcp_kernels import dantzig as inner_dantzig
     from feeder_sim.contact._lcp_kernels import solve_with_states as inner_states
@@ -654,7 +661,7 @@ def test_a_solve_on_given_row_states_is_taken_only_where_it_solves_the_lcp(frict
     def run_states(state, A, b, nof, lo, hi, st):
         return inner_states(borrow(state), A, b, nof, lo, hi, st)
 
-    heap = np.zeros(5, np.int64)
+    heap = heap_state()
     rng = np.random.default_rng(11)
     own = taken_own = other = taken_other = 0
     for _ in range(300):

@@ -734,17 +734,22 @@ def test_the_compiled_step_allocates_nothing_per_step(n_parts):
 
 
 def test_arenas_too_small_give_the_same_steps_and_grow():
-    # A step whose scratch does not fit its arena takes the rest from the heap: the same bits
-    # as a step with room, and the stepper doubles its arenas for the next call.
-    from feeder_sim._arena import new_arena
+    # A step whose scratch does not fit its arena takes the rest from overflow blocks: the
+    # same bits as a step with room, every block freed by the end of the call, and the
+    # stepper doubles its arenas for the next call.
+    from feeder_sim._arena import BLOCKS, N_BLOCKS, new_arena, SHORT
 
     roomy, cramped = pile(12, compiled=True), pile(12, compiled=True)
-    cramped._stepper._arenas = (new_arena(64), new_arena(64))
+    small = (new_arena(64), new_arena(64))
+    cramped._stepper._arenas = small
     roomy.advance(0.3)
     cramped.advance(0.3)
     assert roomy.state.position.tobytes() == cramped.state.position.tobytes()
     assert roomy.state.velocity.tobytes() == cramped.state.velocity.tobytes()
     assert all(a.buf.shape[0] > 1024 for a in cramped._stepper._arenas)
+    for arena in small:
+        assert arena.state[SHORT] > 0
+        assert arena.state[N_BLOCKS] == 0 and arena.state[BLOCKS] == 0
 
 
 G, PGS_TOL = 9.81, 1e-9      # m/s^2; the stacks' PGS velocity residual, m/s

@@ -795,9 +795,10 @@ def lcp_dantzig(W, b_full, friction, mu_lo, mu_hi, slave):
     # the pivots' scratch in one allocation (a direction's dense system and its LU, the
     # bookkeeping; each direction's is given back before the next) instead of some fifty
     buf = np.empty(8 * (4 * m * m + 48 * m) + 8192, np.uint8)
-    x, pivots, code, retry, _ = dantzig(local_arena(buf), A, b, normal_of, lo, hi,
-                                        50 * m + 50)
+    scratch = local_arena(buf)
+    x, pivots, code, retry, _ = dantzig(scratch, A, b, normal_of, lo, hi, 50 * m + 50)
     x = x.copy()
+    release(scratch, 0)
     if buf.shape[0] == 0:    # (buf in use until x is out of it)
         x = x.copy()
     res = lcp_residual(A, b, x, normal_of, lo, hi)

@@ -1046,6 +1046,10 @@ def advance(t, t_end, pos, ang, vel, om, bodies, shapes, drives, st, warm, appro
             break
         t = t + step
         n += 1
-    return (code, t, Warm(warm.keys.copy(), warm.p_n.copy(), warm.p_t.copy(), warm.state.copy(),
-                          warm.projection_state.copy()),
-            Approach(approach.lo.copy(), approach.hi.copy(), approach.vel.copy()))
+    out_warm = Warm(warm.keys.copy(), warm.p_n.copy(), warm.p_t.copy(), warm.state.copy(),
+                    warm.projection_state.copy())
+    out_approach = Approach(approach.lo.copy(), approach.hi.copy(), approach.vel.copy())
+    # what the steps left is copied out: free the arenas' overflow blocks
+    release(scratch[0], 0)
+    release(scratch[1], 0)
+    return code, t, out_warm, out_approach
