@@ -40,6 +40,8 @@ Rules that keep that safe:
 
 from __future__ import annotations
 
+from collections.abc import Callable
+import inspect
 from typing import NamedTuple
 
 import numba
@@ -175,37 +177,8 @@ def local_arena(buf):
     return state
 
 
-def mark(ar) -> int:
-    """The arena's level now, for :func:`release`."""
-
-
-@overload(mark, jit_options=_INLINE)
-def _mark(ar):
-    if _is_heap(ar):
-        return lambda ar: 0
-    return lambda ar: (ar[N_BLOCKS] << _MARK_SHIFT) | ar[USED]
-
-
-def release(ar, level: int) -> None:
-    """Give back everything handed out since ``mark`` returned ``level`` (0: everything,
-    the overflow blocks freed)."""
-
-
-@overload(release, jit_options=_INLINE)
-def _release(ar, level):
-    if _is_heap(ar):
-        return lambda ar, level: None
-
-    def impl(ar, level):
-        if ar[USED] > ar[PEAK]:
-            ar[PEAK] = ar[USED]
-        ar[USED] = level & ((1 << _MARK_SHIFT) - 1)
-        if ar[N_BLOCKS] > level >> _MARK_SHIFT:
-            _free_blocks(ar, level >> _MARK_SHIFT)
-    return impl
-
-
-# The overflow path is a call of its own: a cold path, kept out of every inlined site.
+# The overflow path, a function of its own: LLVM inlines it where it likes, which costs
+# code on a cold path but adds no exit (it cannot raise).
 @inner
 def _overflow(ar, nbytes):
     """The address of ``nbytes`` bytes in a new block linked to the arena (counted)."""
@@ -269,73 +242,82 @@ def _heap_like(like, n):
     return np.empty(n, like.dtype)
 
 
+def _release_arena(ar, level):
+    if ar[USED] > ar[PEAK]:
+        ar[PEAK] = ar[USED]
+    ar[USED] = level & ((1 << _MARK_SHIFT) - 1)
+    if ar[N_BLOCKS] > level >> _MARK_SHIFT:
+        _free_blocks(ar, level >> _MARK_SHIFT)
+
+
+def _two_forms(on_heap: Callable, in_arena: Callable) -> Callable:
+    """Make the decorated stub (its signature and docstring) a compiled-only function,
+    inlined where it is called, that is ``on_heap`` for a heap state (:data:`HEAP_DTYPE`)
+    and ``in_arena`` for an arena: the type of the state picks one when a kernel is
+    compiled."""
+    def register(stub: Callable) -> Callable:
+        def typer(*args):
+            return on_heap if _is_heap(args[0]) else in_arena
+
+        # numba checks the forms' signatures against this one, annotations included
+        stub_sig = inspect.signature(stub)
+        typer.__signature__ = stub_sig.replace(
+            parameters=[p.replace(annotation=p.empty) for p in stub_sig.parameters.values()],
+            return_annotation=stub_sig.empty)
+        overload(stub, jit_options=_INLINE)(typer)
+        return stub
+
+    return register
+
+
+@_two_forms(lambda ar: 0, lambda ar: (ar[N_BLOCKS] << _MARK_SHIFT) | ar[USED])
+def mark(ar) -> int:
+    """The arena's level now, for :func:`release`."""
+
+
+@_two_forms(lambda ar, level: None, _release_arena)
+def release(ar, level: int) -> None:
+    """Give back everything handed out since ``mark`` returned ``level`` (0: everything,
+    the overflow blocks freed)."""
+
+
+@_two_forms(lambda ar, n: _heap_f(n),
+            lambda ar, n: numba.carray(_address(_reserve(ar, 8 * n), numba.float64), (n,)))
 def empty_f(ar, n):
     """``np.empty(n)``."""
 
 
-@overload(empty_f, jit_options=_INLINE)
-def _empty_f(ar, n):
-    if _is_heap(ar):
-        return lambda ar, n: _heap_f(n)
-    return lambda ar, n: numba.carray(_address(_reserve(ar, 8 * n), numba.float64), (n,))
-
-
+@_two_forms(lambda ar, n, m: _heap_f2(n, m),
+            lambda ar, n, m: numba.carray(_address(_reserve(ar, 8 * n * m), numba.float64),
+                                          (n, m)))
 def empty_f2(ar, n, m):
     """``np.empty((n, m))``."""
 
 
-@overload(empty_f2, jit_options=_INLINE)
-def _empty_f2(ar, n, m):
-    if _is_heap(ar):
-        return lambda ar, n, m: _heap_f2(n, m)
-    return lambda ar, n, m: numba.carray(_address(_reserve(ar, 8 * n * m), numba.float64),
-                                         (n, m))
-
-
+@_two_forms(lambda ar, n: _heap_i(n),
+            lambda ar, n: numba.carray(_address(_reserve(ar, 8 * n), numba.int64), (n,)))
 def empty_i(ar, n):
     """``np.empty(n, np.int64)``."""
 
 
-@overload(empty_i, jit_options=_INLINE)
-def _empty_i(ar, n):
-    if _is_heap(ar):
-        return lambda ar, n: _heap_i(n)
-    return lambda ar, n: numba.carray(_address(_reserve(ar, 8 * n), numba.int64), (n,))
-
-
+@_two_forms(lambda ar, n, m: _heap_i2(n, m),
+            lambda ar, n, m: numba.carray(_address(_reserve(ar, 8 * n * m), numba.int64),
+                                          (n, m)))
 def empty_i2(ar, n, m):
     """``np.empty((n, m), np.int64)``."""
 
 
-@overload(empty_i2, jit_options=_INLINE)
-def _empty_i2(ar, n, m):
-    if _is_heap(ar):
-        return lambda ar, n, m: _heap_i2(n, m)
-    return lambda ar, n, m: numba.carray(_address(_reserve(ar, 8 * n * m), numba.int64),
-                                         (n, m))
-
-
+@_two_forms(lambda ar, n: _heap_b(n),
+            lambda ar, n: numba.carray(_address(_reserve(ar, n), numba.boolean), (n,)))
 def empty_b(ar, n):
     """``np.empty(n, np.bool_)``."""
 
 
-@overload(empty_b, jit_options=_INLINE)
-def _empty_b(ar, n):
-    if _is_heap(ar):
-        return lambda ar, n: _heap_b(n)
-    return lambda ar, n: numba.carray(_address(_reserve(ar, n), numba.boolean), (n,))
-
-
+@_two_forms(lambda ar, like, n: _heap_like(like, n),
+            lambda ar, like, n: numba.carray(_address(_reserve(ar, like.itemsize * n), like),
+                                             (n,)))
 def empty_like(ar, like, n):
     """``np.empty(n, like.dtype)`` (``like`` a 1-d array)."""
-
-
-@overload(empty_like, jit_options=_INLINE)
-def _empty_like(ar, like, n):
-    if _is_heap(ar):
-        return lambda ar, like, n: _heap_like(like, n)
-    return lambda ar, like, n: numba.carray(_address(_reserve(ar, like.itemsize * n), like),
-                                            (n,))
 
 
 @_allocator
