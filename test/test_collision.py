@@ -749,3 +749,42 @@ def test_compiled_argsort_is_numpys_stable_argsort():
         nearly[rng.integers(0, max(1, n), min(n, 3))] += 0.1
         for keys in (ints, floats, np.sort(floats), np.sort(floats)[::-1].copy(), nearly):
             np.testing.assert_array_equal(argsort(keys), np.argsort(keys, kind='stable'))
+
+
+def test_the_integer_keys_radix_sort_is_numpys_stable_argsort():
+    # _argsort_int (least-significant-digit radix from 100 keys on, the comparison sort below
+    # that or for negative keys) gives numpy's stable permutation, from a heap state and from
+    # an arena too small for it: ties (many, in narrow ranges), keys of 1 to 62 bits, a
+    # digit every key shares (its pass skipped), sorted and reversed input, one negative key.
+    import numba
+
+    from feeder_sim._arena import borrow, heap_arena, new_arena, release
+    from feeder_sim.contact._collision_kernels import _argsort_int
+
+    @numba.njit
+    def on_heap(keys):
+        return _argsort_int(heap_arena(), keys)
+
+    @numba.njit
+    def in_arena(state, keys):
+        ar = borrow(state)
+        out = _argsort_int(ar, keys).copy()
+        release(ar, 0)
+        return out
+
+    arena = new_arena(256)
+    rng = np.random.default_rng(5)
+    for n in [0, 1, 99, 100, 101, 1000, 5000]:
+        cases = [rng.integers(0, max(1, n // 8), n), rng.integers(0, 2, n),
+                 rng.integers(0, 1 << 40, n), rng.integers(0, 1 << 62, n),
+                 (rng.integers(0, 50, n) << 16) | 0xAB, np.full(n, 7),
+                 np.arange(n), np.arange(n)[::-1].copy()]
+        if n:
+            negative = rng.integers(0, 1000, n)
+            negative[n // 2] = -3
+            cases.append(negative)
+        for keys in cases:
+            keys = keys.astype(np.int64)
+            want = np.argsort(keys, kind='stable')
+            np.testing.assert_array_equal(on_heap(keys), want)
+            np.testing.assert_array_equal(in_arena(arena.state, keys), want)

@@ -57,7 +57,7 @@ from feeder_sim._arena import (
 )
 from feeder_sim._jit import inner, jit
 from feeder_sim.contact._collision_kernels import (
-    _argsort,
+    _argsort_int,
     _where,
     clean_contacts_inline,
     narrow_phase_inline,
@@ -805,7 +805,7 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
         for q in range(m):
             if at[q] >= 0:
                 proj_state[q] = warm.projection_state[at[q]]
-        o = _argsort(ar, keys)
+        o = _argsort_int(ar, keys)
         new_warm = Warm(gather(ar, keys, o), gather(ar, p_n, o), gather(ar, p_t, o),
                         gather(ar, p_state, o), gather(ar, proj_state, o))
     else:
