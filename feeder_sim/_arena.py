@@ -52,6 +52,7 @@ import numpy as np
 from feeder_sim._jit import inner
 
 BASE, CAPACITY, USED, SHORT, PEAK, BLOCKS, N_BLOCKS = range(7)
+_FIELDS = N_BLOCKS + 1
 HEAP_DTYPE = np.int32       # a heap state's dtype; an arena's state is int64
 
 # The allocators are generic functions (``register_jitable``, ``overload``), not dispatchers:
@@ -71,12 +72,15 @@ class Arena(NamedTuple):
     """A scratch buffer and the state kernels allocate from (see the module docstring)."""
 
     buf: np.ndarray     # (capacity,) uint8, owned here
-    state: np.ndarray   # (7,) int64
+    state: np.ndarray   # (_FIELDS,) int64
 
 
+@register_jitable
 def _arena_state(address: int, capacity_bytes: int) -> np.ndarray:
-    state = np.zeros(7, np.int64)
-    state[BASE], state[CAPACITY] = address, capacity_bytes
+    """The state of an empty arena over the buffer at ``address`` (from Python or a kernel)."""
+    state = np.zeros(_FIELDS, np.int64)
+    state[BASE] = address
+    state[CAPACITY] = capacity_bytes
     return state
 
 
@@ -94,8 +98,8 @@ def grown_capacity(arena: Arena) -> int:
 
 def heap_state() -> np.ndarray:
     """A heap state, for kernels called from Python: every array they make is an ordinary
-    numpy array that may outlive the call."""
-    return np.zeros(5, HEAP_DTYPE)
+    numpy array that may outlive the call. It holds nothing: its type is what kernels read."""
+    return np.zeros(0, HEAP_DTYPE)
 
 
 def _is_heap(ar) -> bool:
@@ -162,7 +166,7 @@ def borrow(typingctx, x):
 @inner
 def heap_arena():
     """A heap state (:func:`heap_state`) made in a kernel."""
-    return np.zeros(5, HEAP_DTYPE)
+    return np.zeros(0, HEAP_DTYPE)
 
 
 @inner
@@ -171,10 +175,7 @@ def local_arena(buf):
     allocation: ``buf`` must stay in use until the last array carved from it is (numba frees
     an array after its last use), and results must be copied out, and the state released
     to 0, before it goes."""
-    state = np.zeros(7, np.int64)
-    state[BASE] = buf.ctypes.data
-    state[CAPACITY] = buf.shape[0]
-    return state
+    return _arena_state(buf.ctypes.data, buf.shape[0])
 
 
 # The overflow path, a function of its own: LLVM inlines it where it likes, which costs

@@ -11,7 +11,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from feeder_sim._arena import empty_f, empty_i, full_b, full_i, gather
+from feeder_sim._arena import arange_i, empty_f, empty_i, full_b, full_i, gather
 from feeder_sim._jit import inner, jit
 
 _RUN = 16      # _argsort's insertion-sorted runs
@@ -28,9 +28,7 @@ def _argsort(ar, keys):
     from one step to the next). Hand-written because ``np.argsort`` with a ``kind`` compiles
     numba's generic sorts and string handling: seconds of compile time. Keys must not be NaN."""
     n = keys.shape[0]
-    idx = empty_i(ar, n)
-    for i in range(n):
-        idx[i] = i
+    idx = arange_i(ar, n)
     for lo in range(0, n, _RUN):
         hi = min(lo + _RUN, n)
         for i in range(lo + 1, hi):
@@ -93,9 +91,7 @@ def _argsort_int(ar, keys):
         if keys[i] < 0:
             return _argsort(ar, keys)
         bits |= keys[i]
-    idx = empty_i(ar, n)
-    for i in range(n):
-        idx[i] = i
+    idx = arange_i(ar, n)
     tmp = empty_i(ar, n)
     start = empty_i(ar, 1 << _RADIX_BITS)
     mask = (1 << _RADIX_BITS) - 1
