@@ -13,8 +13,13 @@ Scenes (issue targets as ratio = feeder_sim wall / pymunk wall):
   its 10 iterations: the two engines at equal solver effort, neither converged. It separates
   the cost of the contact pipeline from that of converging a deep pile to 1e-3 m/s.
 
+* ``conveying 1, 100/s`` and ``conveying 1, 1000/s``: the one part advanced 10 ms and 1 ms at a
+  time (the node's default 100 frames per simulated second; a control loop), where the cost of
+  each call from Python counts: at 1 ms a call runs 10 steps.
+
 feeder_sim runs ``Simulator.advance`` (what the node and the CLI run: the stepping method and
-the per-contact impulse log) in 50 ms chunks. pymunk gets the same bodies, poses, masses,
+the per-contact impulse log) in 50 ms chunks unless a case says otherwise; pymunk steps the
+same frames, each a Python loop of ``space.step``. pymunk gets the same bodies, poses, masses,
 gravity and drive: its kinematic bodies (track, walls) get, before every step, the velocity
 that carries them to the drive's displacement at the end of the step; pymunk's defaults
 otherwise (10 iterations), a collision slop of 0.1 mm (its default, 0.1 length units, is
@@ -56,6 +61,9 @@ from feeder_sim.simulator import Simulator  # noqa: E402
 from feeder_sim.stepping import TimeStepSettings  # noqa: E402
 
 CHUNK_S = 0.05
+# the one part's run again in shorter frames (simulated s per Simulator.advance call): the
+# node's default publish_rate (100 frames per simulated s), and a control loop's 1 ms
+FRAMES_S = (0.01, 0.001)
 WALL_HEIGHT_M = 1.0
 INSIDE_M = WALL_HEIGHT_M - 0.01     # a part's centre below the walls' top
 PYMUNK_SLOP_M = 1e-4
@@ -81,14 +89,15 @@ def conveying_scene() -> dict:
 
 
 # ------------------------------------------------------------------------------ feeder_sim
-def run_feeder(scene: dict, duration: float, walled: bool, sweeps: int | None = None) -> dict:
+def run_feeder(scene: dict, duration: float, walled: bool, sweeps: int | None = None,
+               frame_s: float = CHUNK_S) -> dict:
     settings = TimeStepSettings() if sweeps is None else TimeStepSettings(pgs_max_sweeps=sweeps)
     sim = Simulator(build(scene), settings=settings)
     wall = 0.0
     worst = 0
-    for k in range(1, int(round(duration / CHUNK_S)) + 1):
+    for k in range(1, int(round(duration / frame_s)) + 1):
         t0 = time.perf_counter()
-        sim.advance_to(k * CHUNK_S)
+        sim.advance_to(k * frame_s)
         wall += time.perf_counter() - t0
         if walled:
             worst = max(worst, outside_walls(sim, sim.state.position[sim.part_indices], INSIDE_M))
@@ -143,15 +152,16 @@ def pymunk_deepest(dynamic) -> float:
     return deepest[0]
 
 
-def run_pymunk(scene: dict, duration: float, dt: float, walled: bool) -> dict:
+def run_pymunk(scene: dict, duration: float, dt: float, walled: bool,
+               frame_s: float = CHUNK_S) -> dict:
     space, kinematic, dynamic, sim = pymunk_world(scene)
     # the drives' sinusoids, evaluated inline as a pymunk user would (no command changes here)
     driven = [(body, d.amplitude_m / dt, 2 * math.pi * d.frequency_hz, d.phase_rad,
                float(d.direction[0]), float(d.direction[1]))
               for body, d in kinematic if d is not None]
-    n_chunk = int(round(CHUNK_S / dt))
+    n_chunk = int(round(frame_s / dt))
     t, wall, worst, deepest = 0.0, 0.0, 0, 0.0
-    for _ in range(int(round(duration / CHUNK_S))):
+    for _ in range(int(round(duration / frame_s))):
         t0 = time.perf_counter()
         for _ in range(n_chunk):
             for body, a_over_dt, omega, phase, ux, uy in driven:
@@ -174,14 +184,17 @@ def run_pymunk(scene: dict, duration: float, dt: float, walled: bool) -> dict:
 def cases(parts: list[int], duration: float, conveying_s: float,
           equal_sweeps: int) -> list[dict]:
     out = [{'name': f'pile {n}', 'parts': n, 'dt': 1e-3, 'duration': duration, 'walled': True,
-            'scene': tall_walled_pile(n), 'sweeps': None} for n in parts]
+            'scene': tall_walled_pile(n), 'sweeps': None, 'frame_s': CHUNK_S} for n in parts]
     out.append({'name': 'conveying 1', 'parts': 1, 'dt': CONVEYING_DT,
                 'duration': conveying_s, 'walled': False, 'scene': conveying_scene(),
-                'sweeps': None})
+                'sweeps': None, 'frame_s': CHUNK_S})
+    out += [{'name': f'conveying 1, {round(1 / frame)}/s', 'parts': 1, 'dt': CONVEYING_DT,
+             'duration': conveying_s, 'walled': False, 'scene': conveying_scene(),
+             'sweeps': None, 'frame_s': frame} for frame in FRAMES_S]
     if {200, 1000} <= set(parts) and equal_sweeps:
         out += [{'name': f'pile {n}, {equal_sweeps} sweeps', 'parts': n, 'dt': 1e-3,
                  'duration': duration, 'walled': True, 'scene': tall_walled_pile(n),
-                 'sweeps': equal_sweeps} for n in (200, 1000)]
+                 'sweeps': equal_sweeps, 'frame_s': CHUNK_S} for n in (200, 1000)]
     return out
 
 
@@ -246,9 +259,10 @@ def main() -> None:
             for engine in order:
                 if engine == 'feeder_sim':
                     r = run_feeder(case['scene'], case['duration'], case['walled'],
-                                   case['sweeps'])
+                                   case['sweeps'], case['frame_s'])
                 else:
-                    r = run_pymunk(case['scene'], case['duration'], case['dt'], case['walled'])
+                    r = run_pymunk(case['scene'], case['duration'], case['dt'], case['walled'],
+                                   case['frame_s'])
                 runs[case['name']][engine].append(r)
                 print(f'  repeat {rep + 1}/{args.repeats}  {case["name"]:>22}  {engine:>10}  '
                       f'{r["wall_per_sim_s"]:8.4f} s/sim s  escaped {r["escaped"]}  '
@@ -257,7 +271,7 @@ def main() -> None:
     for case in todo:
         row = {'name': case['name'], 'parts': case['parts'], 'dt': case['dt'],
                'duration': case['duration'], 'pgs_max_sweeps': case['sweeps'],
-               'target': TARGETS.get(case['name'])}
+               'frame_s': case['frame_s'], 'target': TARGETS.get(case['name'])}
         for engine in ('feeder_sim', 'pymunk'):
             rs = runs[case['name']][engine]
             row[engine] = {'median': statistics.median(r['wall_per_sim_s'] for r in rs),
