@@ -1,6 +1,7 @@
 """``time_stepping`` regressions with analytic answers: bodies at rest stay at rest whatever
 their mass ratio, and a fast part does not pass through a thin wall."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -242,3 +243,57 @@ def test_row_states_of_the_step_before_give_dantzigs_answer_without_its_pivots(g
     assert on.stats.steps == off.stats.steps and on.stats.fallbacks == 0
     assert off.stats.pivots > 0 and on.stats.pivots <= 0.5 * off.stats.pivots
     assert on.state.position[1, 0] > 0.005          # it conveys: 5 mm or more in 0.5 s
+
+
+def hopping_boxes(**settings) -> Simulator:
+    """Three boxes hopping on a 50 Hz track (Gamma 2.5), stepped by the compiled step."""
+    scene = build(conveyor(psi=math.radians(20.0), mu=0.5, theta=0.0, gamma=2.5,
+                           method='time_stepping', time_step=1e-3, n_parts=3, spacing=0.05,
+                           track_length=0.4))
+    return Simulator(scene, settings=TS.TimeStepSettings(**settings))
+
+
+def test_frames_through_the_kernels_entry_point_give_the_dispatchers_bits():
+    # A frame after the first calls the compiled step's entry point directly (no typing of its
+    # arguments); a caller that replaces the state's arrays between frames sends every call
+    # through numba's dispatcher again. 1 ms frames (one step each) of three hopping boxes:
+    # the same bits both ways, and the replaced arrays are the ones stepped.
+    runs = []
+    for replace in (False, True):
+        sim = hopping_boxes(direct_max_rows=0)
+        kernel = sim._stepper._advance_kernel
+        states = []
+        for k in range(1, 101):
+            if replace:
+                s = sim.state
+                s.position, s.angle = s.position.copy(), s.angle.copy()
+                s.velocity, s.omega = s.velocity.copy(), s.omega.copy()
+            sim.advance(k * 1e-3)
+            assert kernel._entry is not None
+            assert kernel._watched[0] is sim.state.position
+            states.append(np.concatenate([sim.state.position.ravel(), sim.state.angle,
+                                          sim.state.velocity.ravel(), sim.state.omega]))
+        runs.append((np.array(states), sim.stats.as_dict()))
+    (fast, fast_stats), (dispatched, dispatched_stats) = runs
+    assert fast_stats['pgs_solves'] > 20 and fast_stats['steps'] == 100
+    assert fast.tobytes() == dispatched.tobytes()
+    assert fast_stats == dispatched_stats
+
+
+def test_settings_changed_on_a_live_stepper_reach_the_compiled_step():
+    # The compiled step's settings are made once and again after any assignment to a setting,
+    # a new settings object, or a new time step: each change shows in what the steps do.
+    sim = hopping_boxes(direct_max_rows=0)
+    stepper = sim._stepper
+    sim.advance(0.1)
+    assert sim.stats.unconverged == 0 and sim.stats.steps == 100
+    stepper.settings.pgs_max_sweeps = 1        # one sweep cannot converge a landing
+    sim.advance(0.2)
+    assert sim.stats.unconverged > 0
+    stepper.settings = TS.TimeStepSettings(direct_max_rows=0)
+    missed = sim.stats.unconverged
+    sim.advance(0.3)
+    assert sim.stats.unconverged == missed and sim.stats.steps == 300
+    stepper.spec = dataclasses.replace(stepper.spec, time_step=5e-4)
+    sim.advance(0.4)
+    assert sim.stats.steps == 500

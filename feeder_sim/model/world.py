@@ -164,13 +164,17 @@ class World:
         """Indices of bodies that have a vibration drive."""
         return np.array([i for i, d in enumerate(self.drives) if d is not None], dtype=int)
 
+    @cached_property
+    def _driven_drives(self) -> list[Drive]:
+        return [self.drives[i] for i in self.driven.tolist()]
+
     def drive_segments(self, t: float) -> DriveSegments:
         """The drive table from time ``t`` (s) on, one row per body of :attr:`driven`."""
-        drives = [self.drives[i] for i in self.driven]
-        segs = tuple(drive.segment(t) for drive in drives)
+        drives = self._driven_drives
+        segs = tuple([drive.segment(t) for drive in drives])
         memo = self._drive_memo
-        if memo is None or len(memo[0]) != len(segs) or any(
-                a is not b for a, b in zip(memo[0], segs, strict=True)):
+        # (tuples compare their items by identity first: the same segments are equal at once)
+        if memo is None or memo[0] != segs:
             memo = self._drive_memo = (segs, drive_table(drives, segs,
                                                          self.base_position[self.driven]))
         return memo[1]

@@ -64,11 +64,14 @@ class CheckedSettings:
     later (``pgs_check = 0`` would sweep forever)."""
 
     LIMITS: ClassVar[dict[str, str]] = {}
+    # assignments so far: what was derived from the settings is current while it is unchanged
+    version: int = 0
 
     def __setattr__(self, name: str, value: object) -> None:
         f = type(self).__dataclass_fields__.get(name)  # type: ignore[attr-defined]
         if f is not None:
             value = self._checked(name, str(f.type), value)
+            object.__setattr__(self, 'version', self.version + 1)
         object.__setattr__(self, name, value)
 
     def _checked(self, name: str, annotation: str, value: object) -> object:

@@ -324,6 +324,40 @@ class _IslandGeometry:
         return self.bodies[self.body_starts[i]:self.body_starts[i + 1]]
 
 
+class _KernelCall:
+    """A compiled kernel called through the machine code of the overload its previous call
+    took. numba's dispatch types every argument in Python before each call, some 15 us for the
+    80-odd arrays ``_time_stepping_kernels.advance`` takes (of 25 us a call costs; a node at
+    100 frames per second calls it 100 times per simulated second, a control loop 1000). The
+    entry point unboxes the same arguments without looking at their types, so it is only
+    taken while they cannot have changed: every argument but the ``watched`` ones is made by
+    the stepper with fixed types, and the watched ones (the state's arrays, which callers may
+    replace) must be the very objects of the call that chose the overload. Anything else,
+    or a numba without the attributes used here, goes through the dispatcher."""
+
+    def __init__(self, dispatcher) -> None:
+        self._dispatcher = dispatcher
+        self._entry = None
+        self._watched: tuple = ()
+
+    def __call__(self, args: tuple, watched: tuple):
+        if self._entry is not None and len(watched) == len(self._watched) and all(
+                a is b for a, b in zip(watched, self._watched)):
+            return self._entry(*args)
+        out = self._dispatcher(*args)
+        self._entry, self._watched = self._entry_point(args), watched
+        return out
+
+    def _entry_point(self, args: tuple):
+        """The compiled entry point for exactly these argument types, None if there is none
+        (the dispatcher converted an argument to reach an overload)."""
+        try:
+            types = tuple(self._dispatcher.typeof_pyval(a) for a in args)
+            return self._dispatcher.overloads[types].entry_point
+        except (AttributeError, KeyError, TypeError, ValueError):
+            return None
+
+
 class TimeStepper(StepperBase):
     """Advances a state by fixed steps of ``spec.time_step``."""
 
@@ -352,6 +386,8 @@ class TimeStepper(StepperBase):
         self._io = (np.zeros(len(TK.INT_COUNTERS), np.int64), np.zeros(len(TK.FLOAT_MAXIMA)),
                     np.zeros((MAX_MESSAGES, 4)), np.zeros(1, np.int64))
         self._no_approach = TK.no_approach()
+        self._advance_kernel = _KernelCall(TK.advance)
+        self._settings_memo: tuple[tuple, TK.StepSettings] | None = None
         # the compiled step's scratch (two: a step's warm-start impulses live in its arena
         # while the next step runs in the other); grown when a step needed more
         size = _ARENA_BYTES + _ARENA_BYTES_PER_VERTEX * len(self.world.shapes.vertices)
@@ -379,8 +415,15 @@ class TimeStepper(StepperBase):
         return bodies, shape_args
 
     def _compiled_settings(self) -> TK.StepSettings:
-        """The settings as the compiled step takes them (read at every call: tests and
-        studies change settings on a live stepper)."""
+        """The settings as the compiled step takes them, made again whenever the settings or
+        the spec's step changed (tests and studies change settings on a live stepper)."""
+        st, spec = self.settings, self.spec
+        key = (st, st.version, spec.time_step, spec.friction_impulse)
+        if self._settings_memo is None or self._settings_memo[0] != key:
+            self._settings_memo = (key, self._make_compiled_settings())
+        return self._settings_memo[1]
+
+    def _make_compiled_settings(self) -> TK.StepSettings:
         st, spec = self.settings, self.spec
         narrow = NarrowPhaseTolerances(
             bp_margin_m=2.0 * PARAM_TOL * self.world.shapes.derived.max_edge_length,
@@ -467,11 +510,12 @@ class TimeStepper(StepperBase):
             np.array([p[0] for p in held], np.int64), np.array([p[1] for p in held], np.int64),
             np.concatenate(list(held.values())))
         bodies, shapes = self._compiled
-        code, t, warm, approach = TK.advance(
-            state.t, t_end, state.position, state.angle, state.velocity, state.omega, bodies,
-            shapes, self.world.drive_segments(state.t), self._compiled_settings(), warm,
-            approach, ints, floats, rep, msgs[:max(0, len(msgs) - len(stats.messages))],
-            n_msgs, (self._arenas[0].state, self._arenas[1].state))
+        arrays = (state.position, state.angle, state.velocity, state.omega)
+        code, t, warm, approach = self._advance_kernel(
+            (state.t, t_end, *arrays, bodies, shapes, self.world.drive_segments(state.t),
+             self._compiled_settings(), warm, approach, ints, floats, rep,
+             msgs[:max(0, len(msgs) - len(stats.messages))], n_msgs,
+             (self._arenas[0].state, self._arenas[1].state)), arrays)
         self._approach = {} if not approach.lo.size else {
             (lo, hi): approach.vel[2 * p:2 * p + 2] for p, (lo, hi) in
             enumerate(zip(approach.lo.tolist(), approach.hi.tolist(), strict=True))}
