@@ -331,9 +331,10 @@ class _KernelCall:
     100 frames per second calls it 100 times per simulated second, a control loop 1000). The
     entry point unboxes the same arguments without looking at their types, so it is only
     taken while they cannot have changed: every argument but the ``watched`` ones is made by
-    the stepper with fixed types, and the watched ones (the state's arrays, which callers may
-    replace) must be the very objects of the call that chose the overload. Anything else,
-    or a numba without the attributes used here, goes through the dispatcher."""
+    the stepper with fixed types (times as floats, whatever number a caller gave), and the
+    watched ones (the state's arrays, which callers may replace) must be the very objects of
+    the call that chose the overload. Anything else, or a numba without the attributes used
+    here, goes through the dispatcher."""
 
     def __init__(self, dispatcher) -> None:
         self._dispatcher = dispatcher
@@ -512,7 +513,8 @@ class TimeStepper(StepperBase):
         bodies, shapes = self._compiled
         arrays = (state.position, state.angle, state.velocity, state.omega)
         code, t, warm, approach = self._advance_kernel(
-            (state.t, t_end, *arrays, bodies, shapes, self.world.drive_segments(state.t),
+            (float(state.t), float(t_end), *arrays, bodies, shapes,
+             self.world.drive_segments(state.t),
              self._compiled_settings(), warm, approach, ints, floats, rep,
              msgs[:max(0, len(msgs) - len(stats.messages))], n_msgs,
              (self._arenas[0].state, self._arenas[1].state)), arrays)
