@@ -14,6 +14,7 @@ import copy
 from dataclasses import dataclass, replace
 import logging
 import math
+import numbers
 import os
 
 import numpy as np
@@ -326,6 +327,7 @@ class Simulator:
         self.lost_parts: list[tuple[float, str]] = []    # (t s, name) of parts that left
         self._told: set[str] = set()     # kinds of inexact answers already logged
         self.state = self.world.initial_state()
+        self._checked_arrays: tuple[np.ndarray, ...] | None = None   # see _check_state
         self._log = _ImpulseLog()
         self._settings = settings
         self.initial_energy_j = self.mechanical_energy()
@@ -358,6 +360,7 @@ class Simulator:
         already there or past it (see :meth:`advance_by` to go on by a duration)."""
         if not math.isfinite(t_end):
             raise ValueError(f't_end must be finite, got {t_end!r}')
+        self._check_state()
         if self.feed is None:
             self._step_to(t_end)
         elif t_end > self.t:
@@ -375,6 +378,36 @@ class Simulator:
                 # once per kind and run; the counts go on in the summary and /diagnostics
                 self._told.add(kind)
                 log.error('%s: by t = %.6f s, %s', self.scene.name, self.state.t, line)
+
+    def _check_state(self) -> None:
+        """Refuse, with the field and the fix, a state a caller changed into one no stepper can
+        take: its time not a finite number, or an array replaced by one of another type, shape or
+        memory layout (compiled steppers would compile anew for a minute, or read the array as
+        float64 of the world's size in C order: wrong bodies, wrong memory). The arrays are
+        checked when they are not the ones checked last."""
+        s = self.state
+        if not (isinstance(s.t, numbers.Real) and math.isfinite(s.t)):
+            raise ValueError(f'state.t must be a finite number of seconds, got {s.t!r}')
+        last = self._checked_arrays
+        if (last is not None and s.position is last[0] and s.angle is last[1]
+                and s.velocity is last[2] and s.omega is last[3]):
+            return
+        n = self.world.n
+        for name, shape in (('position', (n, 2)), ('angle', (n,)), ('velocity', (n, 2)),
+                            ('omega', (n,))):
+            x = getattr(s, name)
+            if (isinstance(x, np.ndarray) and x.dtype == np.float64 and x.shape == shape
+                    and x.flags.c_contiguous and x.flags.writeable):
+                continue
+            got = type(x).__name__
+            if isinstance(x, np.ndarray):
+                got = f'{x.dtype} array of shape {x.shape}' + (
+                    '' if x.flags.c_contiguous else ', not C-contiguous') + (
+                    '' if x.flags.writeable else ', read-only')
+            raise ValueError(f'state.{name} must be a writable, C-contiguous float64 array of '
+                             f'shape {shape}, got a {got}: assign np.array(value, dtype=float) '
+                             f'of that shape')
+        self._checked_arrays = (s.position, s.angle, s.velocity, s.omega)
 
     def _step_to(self, t_end: float) -> None:
         if self.energy_check is None:

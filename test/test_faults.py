@@ -256,3 +256,47 @@ def test_a_settings_value_that_would_never_end_a_solve_is_refused_before_the_run
                                         'EventSettings$'):
         Simulator(parse_scene(SCENES['track_ten_boxes']), method='time_stepping',
                   settings=EventSettings())
+
+
+BAD_ARRAYS = {
+    'float32': lambda x: x.astype(np.float32),
+    'a strided view': lambda x: np.repeat(x[..., None], 2, -1)[..., 0],
+    'one body short': lambda x: x[:-1].copy(),
+    'read-only': lambda x: np.frombuffer(x.tobytes()).reshape(x.shape),
+    'a list': lambda x: x.tolist(),
+}
+
+
+@pytest.mark.parametrize('method', ['time_stepping', 'event_driven', 'impulse_based'])
+@pytest.mark.parametrize('bad', sorted(BAD_ARRAYS))
+@pytest.mark.parametrize('field', ['position', 'angle', 'velocity', 'omega'])
+def test_a_state_array_replaced_by_one_no_stepper_can_take_is_refused(field, bad, method):
+    # A caller that replaces a state array by one of another dtype, shape or memory layout
+    # gets one line naming the field, at once (the compiled steppers would compile anew for
+    # a minute, or read it as float64 of the world's size); a good array put back runs on,
+    # and the run agrees with one whose state was never touched.
+    sims = [Simulator(parse_scene(SCENES['track_one_box']), method=method) for _ in range(2)]
+    for sim in sims:
+        sim.advance(0.01)
+    sim, ref = sims
+    good = getattr(sim.state, field)
+    setattr(sim.state, field, BAD_ARRAYS[bad](good))
+    t0 = time.perf_counter()
+    with pytest.raises(ValueError, match=rf'^state\.{field} must be a writable, C-contiguous '
+                                         rf'float64 array of shape \((2, 2|2,)\), got '):
+        sim.advance(0.02)
+    assert time.perf_counter() - t0 < 0.5
+    assert sim.t == ref.t < 0.02
+    setattr(sim.state, field, good.copy())
+    for s in sims:
+        s.advance(0.02)
+    assert np.array_equal(sim.state.position, ref.state.position)
+    assert np.array_equal(sim.state.velocity, ref.state.velocity)
+
+
+def test_a_state_time_that_is_not_a_finite_number_is_refused():
+    sim = Simulator(parse_scene(SCENES['track_one_box']))
+    for bad in (math.nan, math.inf, '0.1', None):
+        sim.state.t = bad
+        with pytest.raises(ValueError, match=r'^state\.t must be a finite number of seconds'):
+            sim.advance(0.02)
