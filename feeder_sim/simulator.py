@@ -68,6 +68,23 @@ def _env_tolerance(text: str) -> float:
     return tolerance
 
 
+def _is_number(x: object) -> bool:
+    return isinstance(x, numbers.Real) and not isinstance(x, (bool, np.bool_))
+
+
+_TRIPLES = {'pose': '[x, y, angle] in m and rad', 'velocity': '[vx, vy, omega] in m/s and rad/s'}
+
+
+def _triple(value: Sequence[float], what: str) -> np.ndarray:
+    """A part's ``pose`` or ``velocity`` as three floats (their range is the scene check's),
+    or a ValueError naming it."""
+    if isinstance(value, (str, bytes)) or not all(
+            _is_number(x) for x in np.ravel(np.asarray(value, dtype=object))) or np.shape(
+            value) != (3,):
+        raise ValueError(f'{what} must be {_TRIPLES[what]}, got {value!r}')
+    return np.asarray(value, dtype=float)
+
+
 def _extent_m(body) -> float:
     """Largest extent (m) of a body's outline."""
     pts = np.concatenate(body.pieces)
@@ -358,8 +375,8 @@ class Simulator:
     def advance_to(self, t_end: float) -> None:
         """Integrate to simulated time ``t_end`` (s); nothing happens if the simulation is
         already there or past it (see :meth:`advance_by` to go on by a duration)."""
-        if not math.isfinite(t_end):
-            raise ValueError(f't_end must be finite, got {t_end!r}')
+        if not _is_number(t_end) or not math.isfinite(t_end):
+            raise ValueError(f't_end must be a finite number of seconds, got {t_end!r}')
         self._check_state()
         if self.feed is None:
             self._step_to(t_end)
@@ -386,7 +403,7 @@ class Simulator:
         float64 of the world's size in C order: wrong bodies, wrong memory). The arrays are
         checked when they are not the ones checked last."""
         s = self.state
-        if not (isinstance(s.t, numbers.Real) and math.isfinite(s.t)):
+        if not (_is_number(s.t) and math.isfinite(s.t)):
             raise ValueError(f'state.t must be a finite number of seconds, got {s.t!r}')
         last = self._checked_arrays
         if (last is not None and s.position is last[0] and s.angle is last[1]
@@ -419,7 +436,7 @@ class Simulator:
     def check_duration(self, duration_s: float, what: str = 'duration') -> None:
         """Refuse (ValueError naming ``what``) a run length that is not positive and finite or
         takes more than :data:`MAX_STEPS_PER_RUN` steps of ``solver.time_step``."""
-        if not (duration_s > 0 and math.isfinite(duration_s)):
+        if not (_is_number(duration_s) and duration_s > 0 and math.isfinite(duration_s)):
             raise ValueError(f'{what} must be a positive number of seconds, got {duration_s!r}')
         h = self.scene.solver.time_step
         if duration_s / h > MAX_STEPS_PER_RUN:
@@ -487,8 +504,8 @@ class Simulator:
         its body frame at ``pose`` ([x, y, angle], m and rad) moving at ``velocity`` ([vx, vy,
         omega], m/s and rad/s). Checked as a scene file is (SceneError: a taken name, a pose
         inside another body, ...)."""
-        body = replace(self.template_body(template), name=name, pose=np.asarray(pose, float),
-                       velocity=np.asarray(velocity, float))
+        body = replace(self.template_body(template), name=name, pose=_triple(pose, 'pose'),
+                       velocity=_triple(velocity, 'velocity'))
         self._rebuild([*self._now(), body], [*range(self.world.n), None])
 
     def template_body(self, template: str):
@@ -521,8 +538,8 @@ class Simulator:
         """Put the part ``name`` at ``pose`` moving at ``velocity`` (units of add_part)."""
         index = self._part_index(name)
         bodies = self._now()
-        bodies[index] = replace(bodies[index], pose=np.asarray(pose, float),
-                                velocity=np.asarray(velocity, float))
+        bodies[index] = replace(bodies[index], pose=_triple(pose, 'pose'),
+                                velocity=_triple(velocity, 'velocity'))
         self._rebuild(bodies, list(range(self.world.n)), given={index})
 
     def _part_index(self, name: str) -> int:

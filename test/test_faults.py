@@ -300,3 +300,29 @@ def test_a_state_time_that_is_not_a_finite_number_is_refused():
         sim.state.t = bad
         with pytest.raises(ValueError, match=r'^state\.t must be a finite number of seconds'):
             sim.advance(0.02)
+
+
+API_MISUSE = [
+    (lambda s: s.advance_to('1'), r"^t_end must be a finite number of seconds, got '1'$"),
+    (lambda s: s.advance_to(None), r'^t_end must be a finite number of seconds, got None$'),
+    (lambda s: s.advance_by('x'), r"^duration must be a positive number of seconds, got 'x'$"),
+    (lambda s: s.set_part_pose('box', [0.0]), r'^pose must be \[x, y, angle\] in m and rad'),
+    (lambda s: s.set_part_pose('box', 'abc'), r'^pose must be \[x, y, angle\] in m and rad'),
+    (lambda s: s.add_part('box', 'b', [0.0, 0.1, 0.0], velocity=[[1.0], 2.0, 3.0]),
+     r'^velocity must be \[vx, vy, omega\] in m/s and rad/s'),
+    (lambda s: s.command_vibration('a', 50.0),
+     r'^amplitude_m and frequency_hz must be finite numbers >= 0'),
+]
+
+
+@pytest.mark.parametrize('case', range(len(API_MISUSE)))
+def test_python_api_misuse_is_one_line_naming_the_argument(case):
+    call, message = API_MISUSE[case]
+    sim = Simulator(parse_scene(SCENES['track_one_box']))
+    sim.advance(0.01)
+    before = sim.state.copy()
+    with pytest.raises(ValueError, match=message):
+        call(sim)
+    assert sim.t == before.t and np.array_equal(sim.state.position, before.position)
+    sim.advance(0.02)
+    assert sim.t > before.t

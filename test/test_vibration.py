@@ -7,8 +7,11 @@ import numpy as np
 import pytest
 
 from feeder_sim.model.vibration import (
+    CommandLimits,
     Drive,
     drive_segments,
+    MAX_AMPLITUDE_M,
+    MAX_FREQUENCY_HZ,
     MIN_AMPLITUDE_M,
     MIN_FREQUENCY_HZ,
     parse_command,
@@ -75,6 +78,43 @@ def test_a_command_too_small_to_resolve_is_refused_with_its_field(data, field):
     # zero stops the drive, the smallest resolvable values run
     assert parse_command([0.0, 0.0]) == (0.0, 0.0)
     assert parse_command([MIN_AMPLITUDE_M, MIN_FREQUENCY_HZ]) == (1e-9, 1e-3)
+
+
+@pytest.mark.parametrize('data, field', [
+    ([10.0, 50.0], 'amplitude'), ([1e-3, 1e9], 'frequency'), ([0.1000001, 50.0], 'amplitude'),
+    ([1e-3, 1000.001], 'frequency'), ([1e300, 1e300], 'amplitude')])
+def test_a_drive_value_above_the_largest_is_refused_with_its_field(data, field):
+    # The bounds of a scene file hold for commands too, whatever limits a node was given: a
+    # track at 1e9 Hz would have event_driven locate a billion impacts per second.
+    d = Drive(np.array([1.0, 0.0]), amplitude_m=1e-3, frequency_hz=50.0)
+    with pytest.raises(ValueError, match=f'^{field} .* above the largest a drive takes'):
+        d.command(0.01, *data)
+    with pytest.raises(ValueError, match=f'^{field} .* above the largest a drive takes'):
+        parse_command(data, CommandLimits(max_amplitude_m=1e301, max_frequency_hz=1e301))
+    assert d.motion(0.013)[0] == pytest.approx(1e-3 * math.sin(2 * math.pi * 50 * 0.013))
+    assert parse_command([MAX_AMPLITUDE_M, MAX_FREQUENCY_HZ]) == (0.1, 1000.0)
+
+
+@pytest.mark.parametrize('data, field', [(['a', 50.0], 'amplitude'), ([1e-3, None], 'frequency'),
+                                         ([True, 50.0], 'amplitude')])
+def test_a_command_value_that_is_no_number_is_refused_with_its_field(data, field):
+    with pytest.raises(ValueError, match=f'^{field} is .*; it must be a number$'):
+        parse_command(data)
+    with pytest.raises(ValueError, match='^amplitude_m and frequency_hz must be finite numbers'):
+        Drive(np.array([1.0, 0.0]), amplitude_m=1e-3, frequency_hz=50.0).command(0.0, *data)
+
+
+@pytest.mark.parametrize('method', ['event_driven', 'time_stepping', 'impulse_based'])
+def test_an_absurd_command_from_python_is_refused_and_the_run_goes_on(method):
+    from feeder_sim.simulator import Simulator
+    sims = [Simulator('track_one_box', method=method) for _ in range(2)]
+    for sim in sims:
+        sim.advance(0.02)
+    with pytest.raises(ValueError, match='^frequency 1e[+]09 Hz is above the largest'):
+        sims[0].command_vibration(1e-3, 1e9)
+    for sim in sims:
+        sim.advance(0.05)
+    assert np.array_equal(sims[0].state.position, sims[1].state.position)
 
 
 @pytest.mark.parametrize('method', ['event_driven', 'time_stepping', 'impulse_based'])

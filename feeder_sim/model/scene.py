@@ -31,7 +31,11 @@ import simpleeval
 import yaml
 
 from feeder_sim.model import geometry
-from feeder_sim.model.vibration import drive_value_problem
+from feeder_sim.model.vibration import (
+    drive_value_problem,
+    MAX_AMPLITUDE_M,
+    MAX_FREQUENCY_HZ,
+)
 
 __all__ = [
     'BODY_TYPES', 'METHODS', 'BodySpec', 'Scene', 'SceneError', 'SolverSpec', 'Vibration',
@@ -601,10 +605,10 @@ def _drive_value(name: str, check: Callable[[Any, str], float]) -> Callable[[Any
 
 _VIBRATION = {
     'amplitude': _Field(_drive_value('amplitude', _num(
-                            0.0, 0.1, unit='m, 0-peak',
+                            0.0, MAX_AMPLITUDE_M, unit='m, 0-peak',
                             hint='feeder amplitudes are typically 1e-5 to 1e-3 m')),
                         'the displacement amplitude in m (0-peak)'),
-    'frequency': _Field(_drive_value('frequency', _num(0.0, 1000.0, unit='Hz')),
+    'frequency': _Field(_drive_value('frequency', _num(0.0, MAX_FREQUENCY_HZ, unit='Hz')),
                         'the frequency in Hz'),
     'angle': _Field(_num(unit='rad'), 'the direction in rad from the body x axis'),
     'phase': _Field(_num(unit='rad'), 'the phase in rad', 0.0),

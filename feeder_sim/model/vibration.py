@@ -14,6 +14,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 import math
+import numbers
 from typing import NamedTuple
 
 import numpy as np
@@ -28,17 +29,26 @@ TWO_PI = 2.0 * math.pi
 # 1 mHz (a period over 1000 s) is a slow displacement, not a vibration.
 MIN_AMPLITUDE_M = 1e-9
 MIN_FREQUENCY_HZ = 1e-3
+# The largest, wherever a drive value comes from (a scene file, a command from Python or ROS):
+# feeders vibrate at 1e-5 to 1e-3 m and 10 to 300 Hz. Far beyond, a value is a mistake whose
+# physics has no bound on its work (event_driven would locate every impact of a part on a
+# track vibrating at 1e9 Hz).
+MAX_AMPLITUDE_M = 0.1
+MAX_FREQUENCY_HZ = 1000.0
 
 
 def drive_value_problem(name: str, value: float) -> str | None:
     """Why a drive ``amplitude`` (m) or ``frequency`` (Hz) cannot be used, or None.
 
-    Zero is allowed (the drive is off); so is anything from the minimum up."""
-    minimum, unit = {'amplitude': (MIN_AMPLITUDE_M, 'm'),
-                     'frequency': (MIN_FREQUENCY_HZ, 'Hz')}[name]
+    Zero is allowed (the drive is off); so is anything from the minimum to the maximum."""
+    minimum, maximum, unit = {'amplitude': (MIN_AMPLITUDE_M, MAX_AMPLITUDE_M, 'm'),
+                              'frequency': (MIN_FREQUENCY_HZ, MAX_FREQUENCY_HZ, 'Hz')}[name]
     if 0.0 < value < minimum:
         return (f'{name} {value:g} {unit} is below the smallest the physics resolves '
                 f'({minimum:g} {unit}); give 0 to stop the drive, or at least {minimum:g} {unit}')
+    if value > maximum:
+        return (f'{name} {value:g} {unit} is above the largest a drive takes '
+                f'({maximum:g} {unit}); give at most {maximum:g} {unit}')
     return None
 
 
@@ -101,9 +111,9 @@ class Drive:
 
     def command(self, t: float, amplitude_m: float, frequency_hz: float) -> None:
         """Switch to a new amplitude and frequency from time ``t`` on, keeping d(t) continuous."""
-        if amplitude_m < 0 or frequency_hz < 0 or not (
-                math.isfinite(amplitude_m) and math.isfinite(frequency_hz)):
-            raise ValueError('amplitude_m and frequency_hz must be finite and >= 0, got '
+        if not all(isinstance(x, numbers.Real) and not isinstance(x, (bool, np.bool_))
+                   and math.isfinite(x) and x >= 0 for x in (amplitude_m, frequency_hz)):
+            raise ValueError('amplitude_m and frequency_hz must be finite numbers >= 0, got '
                              f'{amplitude_m!r}, {frequency_hz!r}')
         for name, value in (('amplitude', amplitude_m), ('frequency', frequency_hz)):
             if (problem := drive_value_problem(name, value)) is not None:
@@ -209,8 +219,8 @@ def segment_motion(t, drives, d):
 class CommandLimits:
     """Bounds a vibration command must respect; anything outside is a mistake, not a request."""
 
-    max_amplitude_m: float = 0.1
-    max_frequency_hz: float = 1000.0
+    max_amplitude_m: float = MAX_AMPLITUDE_M
+    max_frequency_hz: float = MAX_FREQUENCY_HZ
 
 
 def parse_command(data, limits: CommandLimits = CommandLimits()) -> tuple[float, float]:
@@ -223,6 +233,9 @@ def parse_command(data, limits: CommandLimits = CommandLimits()) -> tuple[float,
     if len(values) != 2:
         raise ValueError(f'expected data = [amplitude_m, frequency_hz], got {len(values)} '
                          'values')
+    for name, value in zip(('amplitude', 'frequency'), values, strict=True):
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+            raise ValueError(f'{name} is {value!r}; it must be a number')
     amplitude_m, frequency_hz = (float(v) for v in values)
     for name, value, bound, unit in (
             ('amplitude', amplitude_m, limits.max_amplitude_m, 'm'),

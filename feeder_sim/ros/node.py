@@ -64,7 +64,12 @@ from visualization_msgs.msg import MarkerArray
 
 from feeder_sim._jit import in_first_use, kernel_load_seconds
 from feeder_sim.model.scene import METHODS, SceneError
-from feeder_sim.model.vibration import CommandLimits, parse_command
+from feeder_sim.model.vibration import (
+    CommandLimits,
+    MAX_AMPLITUDE_M,
+    MAX_FREQUENCY_HZ,
+    parse_command,
+)
 from feeder_sim.model.world import DYNAMIC
 from feeder_sim.output import frames
 from feeder_sim.output.frames import Frame, open_recorder, record_frame
@@ -121,10 +126,11 @@ PARAMETERS = (
     _Param('start_paused', False, 'start paused (use ~/pause or ~/step)'),
     _Param('steps_per_call', 1, 'frames advanced by one ~/step call', read_only=False,
            low=1, high=1000000),
-    _Param('max_amplitude_m', 0.1, 'largest vibration amplitude accepted on vibration_cmd (m)',
-           read_only=False, low=0.0, high=10.0),
-    _Param('max_frequency_hz', 1000.0, 'largest vibration frequency accepted (Hz)',
-           read_only=False, low=0.0, high=1e6),
+    _Param('max_amplitude_m', MAX_AMPLITUDE_M,
+           'largest vibration amplitude accepted on vibration_cmd (m)',
+           read_only=False, low=0.0, high=MAX_AMPLITUDE_M),
+    _Param('max_frequency_hz', MAX_FREQUENCY_HZ, 'largest vibration frequency accepted (Hz)',
+           read_only=False, low=0.0, high=MAX_FREQUENCY_HZ),
     _Param('on_record_error', 'continue', "when the log cannot be written: 'continue' "
            "simulating without it, or 'stop' the node (exit status 1)"),
     _Param('log_time', 'wall', "MCAP log times: 'wall' (the recording's start plus the simulated "
