@@ -297,3 +297,22 @@ def test_settings_changed_on_a_live_stepper_reach_the_compiled_step():
     stepper.spec = dataclasses.replace(stepper.spec, time_step=5e-4)
     sim.advance(0.4)
     assert sim.stats.steps == 500
+
+
+def test_frames_after_reference_steps_go_through_the_dispatcher_again():
+    # Reference steps leave the warm start and held-back velocities in arrays of their own
+    # making: the compiled step's next call re-dispatches, and the frames match a run that
+    # stayed compiled, bit for bit.
+    runs = []
+    for switch in (False, True):
+        sim = hopping_boxes(direct_max_rows=0)
+        stepper, kernel = sim._stepper, sim._stepper._advance_kernel
+        for k in range(1, 61):
+            if switch:
+                stepper.settings.compiled = not (20 < k <= 40)
+            sim.advance(k * 1e-3)
+            if switch and k == 40:
+                assert kernel._entry is None
+        assert kernel._entry is not None
+        runs.append(np.concatenate([sim.state.position.ravel(), sim.state.velocity.ravel()]))
+    assert runs[0].tobytes() == runs[1].tobytes()

@@ -349,6 +349,10 @@ class _KernelCall:
         self._entry, self._watched = self._entry_point(args), watched
         return out
 
+    def forget(self) -> None:
+        """Go through the dispatcher at the next call."""
+        self._entry = None
+
     def _entry_point(self, args: tuple):
         """The compiled entry point for exactly these argument types, None if there is none
         (the dispatcher converted an argument to reach an overload)."""
@@ -487,8 +491,11 @@ class TimeStepper(StepperBase):
                 if code == TK.GROW:
                     self._reports = TK.new_reports(2 * len(self._reports.gap))
                     continue
-            # the reference step: where the kernel hands a step back, or not compiled
+            # the reference step: where the kernel hands a step back, or not compiled. It
+            # leaves the warm start and the held-back velocities in arrays of its own making:
+            # the next call goes through numba's dispatcher again
             report = self.step(state, min(h, t_end - state.t))
+            self._advance_kernel.forget()
             if report is not None:
                 reports.append(report)
         return reports
