@@ -14,7 +14,6 @@ import copy
 from dataclasses import dataclass, replace
 import logging
 import math
-import numbers
 import os
 
 import numpy as np
@@ -22,6 +21,7 @@ import numpy as np
 from feeder_sim import _jit
 from feeder_sim.contact._feature_kernels import sum_by_feature
 from feeder_sim.contact.dynamics import SolverStats
+from feeder_sim.model.checks import is_number
 from feeder_sim.model.scene import (
     load_scene,
     MAX_ANGLE_RAD,
@@ -68,10 +68,6 @@ def _env_tolerance(text: str) -> float:
     return tolerance
 
 
-def _is_number(x: object) -> bool:
-    return isinstance(x, numbers.Real) and not isinstance(x, (bool, np.bool_))
-
-
 _TRIPLES = {'pose': '[x, y, angle] in m and rad', 'velocity': '[vx, vy, omega] in m/s and rad/s'}
 
 
@@ -79,7 +75,7 @@ def _triple(value: Sequence[float], what: str) -> np.ndarray:
     """A part's ``pose`` or ``velocity`` as three floats (their range is the scene check's),
     or a ValueError naming it."""
     if isinstance(value, (str, bytes)) or not all(
-            _is_number(x) for x in np.ravel(np.asarray(value, dtype=object))) or np.shape(
+            is_number(x) for x in np.ravel(np.asarray(value, dtype=object))) or np.shape(
             value) != (3,):
         raise ValueError(f'{what} must be {_TRIPLES[what]}, got {value!r}')
     return np.asarray(value, dtype=float)
@@ -375,7 +371,7 @@ class Simulator:
     def advance_to(self, t_end: float) -> None:
         """Integrate to simulated time ``t_end`` (s); nothing happens if the simulation is
         already there or past it (see :meth:`advance_by` to go on by a duration)."""
-        if not _is_number(t_end) or not math.isfinite(t_end):
+        if not is_number(t_end) or not math.isfinite(t_end):
             raise ValueError(f't_end must be a finite number of seconds, got {t_end!r}')
         self._check_state()
         if self.feed is None:
@@ -403,7 +399,7 @@ class Simulator:
         float64 of the world's size in C order: wrong bodies, wrong memory). The arrays are
         checked when they are not the ones checked last."""
         s = self.state
-        if not (_is_number(s.t) and math.isfinite(s.t)):
+        if not (is_number(s.t) and math.isfinite(s.t)):
             raise ValueError(f'state.t must be a finite number of seconds, got {s.t!r}')
         last = self._checked_arrays
         if (last is not None and s.position is last[0] and s.angle is last[1]
@@ -436,7 +432,7 @@ class Simulator:
     def check_duration(self, duration_s: float, what: str = 'duration') -> None:
         """Refuse (ValueError naming ``what``) a run length that is not positive and finite or
         takes more than :data:`MAX_STEPS_PER_RUN` steps of ``solver.time_step``."""
-        if not (_is_number(duration_s) and duration_s > 0 and math.isfinite(duration_s)):
+        if not (is_number(duration_s) and duration_s > 0 and math.isfinite(duration_s)):
             raise ValueError(f'{what} must be a positive number of seconds, got {duration_s!r}')
         h = self.scene.solver.time_step
         if duration_s / h > MAX_STEPS_PER_RUN:

@@ -31,6 +31,7 @@ import simpleeval
 import yaml
 
 from feeder_sim.model import geometry
+from feeder_sim.model.checks import is_number
 from feeder_sim.model.vibration import (
     drive_value_problem,
     MAX_AMPLITUDE_M,
@@ -355,7 +356,7 @@ def _number(value, path: str, lo: float | None = None, hi: float | None = None, 
     expected = 'a number' + (f' ({unit})' if unit else '')
     if lo is not None or hi is not None:
         expected += ' ' + _range_text(lo, hi, lo_open, hi_open)
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, Real):
+    if not is_number(value):
         extra = ''
         if isinstance(value, str) and _looks_numeric(value):
             extra = '; YAML read it as text: remove any quotes'
@@ -397,7 +398,7 @@ def _evaluate(text: str, path: str, values: Mapping[str, float]) -> float:
         reason = getattr(err, 'message', None) or str(err) or type(err).__name__
         raise _Invalid(path, f'cannot evaluate {text!r}: {reason}; parameters: {known}; '
                              'functions: ' + ', '.join(sorted(EXPRESSION_FUNCTIONS))) from None
-    if isinstance(result, bool) or not isinstance(result, Real):
+    if not is_number(result):
         raise _Invalid(path, f'{text!r} gives {_describe(result)}, not a number')
     return float(result)
 

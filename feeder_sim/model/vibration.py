@@ -14,12 +14,12 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 import math
-import numbers
 from typing import NamedTuple
 
 import numpy as np
 
 from feeder_sim._jit import inner
+from feeder_sim.model.checks import is_number
 
 TWO_PI = 2.0 * math.pi
 
@@ -111,8 +111,8 @@ class Drive:
 
     def command(self, t: float, amplitude_m: float, frequency_hz: float) -> None:
         """Switch to a new amplitude and frequency from time ``t`` on, keeping d(t) continuous."""
-        if not all(isinstance(x, numbers.Real) and not isinstance(x, (bool, np.bool_))
-                   and math.isfinite(x) and x >= 0 for x in (amplitude_m, frequency_hz)):
+        if not all(is_number(x) and math.isfinite(x) and x >= 0
+                   for x in (amplitude_m, frequency_hz)):
             raise ValueError('amplitude_m and frequency_hz must be finite numbers >= 0, got '
                              f'{amplitude_m!r}, {frequency_hz!r}')
         for name, value in (('amplitude', amplitude_m), ('frequency', frequency_hz)):
@@ -234,7 +234,7 @@ def parse_command(data, limits: CommandLimits = CommandLimits()) -> tuple[float,
         raise ValueError(f'expected data = [amplitude_m, frequency_hz], got {len(values)} '
                          'values')
     for name, value in zip(('amplitude', 'frequency'), values, strict=True):
-        if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+        if not is_number(value):
             raise ValueError(f'{name} is {value!r}; it must be a number')
     amplitude_m, frequency_hz = (float(v) for v in values)
     for name, value, bound, unit in (
