@@ -17,6 +17,7 @@ from feeder_sim.contact import lcp
 from feeder_sim.model.builders import box, build, conveyor, scene_dict
 from feeder_sim.simulator import Simulator
 from feeder_sim.stepping.event_driven import _kernels as kern
+from feeder_sim.stepping.event_driven.events import CandidateWatch
 from feeder_sim.stepping.event_driven.stepper import EventSettings
 
 HALF_M = 0.005        # half side of the 10 mm blocks
@@ -139,6 +140,44 @@ def test_thrown_part_bounces_off_a_thin_wall_while_another_body_rocks():
     assert np.allclose(sim.state.position[1], (x_hit - WALL_E * THROW_MPS * (END_S - HIT_S),
                                                0.1 - fall_m), rtol=0.0, atol=1e-9)
     assert abs(sim.state.angle[3] - 0.1) > 1e-3      # the rocker did rock
+
+
+FALL_M, DROP_MPS = 30.0, 50.0
+
+
+@pytest.mark.parametrize('chained', [True, False])
+def test_part_falling_fast_lands_where_free_fall_says_with_a_detection_per_frame(
+        monkeypatch, chained):
+    # Thrown down at 50 m/s towards a floor 30 m below, a 10 mm box covers 50-80 mm per 1 ms
+    # step, more than its candidates' margin (a few body sizes). It must fly the parabola to
+    # the floor and stay there (e = 0) with its candidate collisions detected again about
+    # once per 10 ms frame, not several times per step.
+    floor = {'name': 'floor', 'type': 'static', 'polygon': box(1.0, 0.05),
+             'pose': [0.0, -FALL_M - 0.05, 0.0], 'mu_static': 0.5, 'mu_dynamic': 0.5}
+    part = {'name': 'part', 'type': 'dynamic', 'polygon': box(HALF_M, HALF_M),
+            'mass': MASS_KG, 'pose': [0.0, 0.0, 0.0], 'velocity': [0.0, -DROP_MPS, 0.0],
+            'mu_static': 0.5, 'mu_dynamic': 0.5, 'restitution': 0.0}
+    sim = Simulator(build(scene_dict('fall', [floor, part], 'event_driven', 1e-3)),
+                    settings=EventSettings(chained=chained))
+    detections = []
+    find = CandidateWatch.find
+
+    def counted(watch, state, margin):
+        detections.append(state.t)
+        return find(watch, state, margin)
+
+    monkeypatch.setattr(CandidateWatch, 'find', counted)
+    drop = FALL_M - HALF_M              # the part's bottom face to the floor's top
+    t_land = (-DROP_MPS + math.sqrt(DROP_MPS ** 2 + 2 * G * drop)) / G
+    frames = 70
+    for k in range(1, frames + 1):
+        sim.advance_to(k * 0.01)
+        t = min(sim.t, t_land)
+        assert abs(sim.state.position[1, 1] - (-DROP_MPS * t - 0.5 * G * t * t)) <= 1e-9
+    assert t_land < sim.t
+    assert sim.stats.impacts == 1
+    assert np.allclose(sim.state.velocity[1], 0.0, rtol=0.0, atol=1e-9)
+    assert len(detections) <= 2 * frames, len(detections)
 
 
 # --------------------------------------------------------------------------- compiled paths

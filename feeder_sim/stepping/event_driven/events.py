@@ -92,6 +92,15 @@ class CandidateWatch:
     def closed_form_margin(self) -> float:
         return closed_form_margin(self.world, self.setup.length)
 
+    def travel_margin(self, state: State, duration: float) -> float:
+        """Twice the farthest (m) a dynamic body's corners get within ``duration`` (s) at
+        their speed now under gravity: a margin no body outruns in that time unless a
+        contact or a drive speeds it up."""
+        dyn, s = self.setup.dyn, self.setup
+        speed = float(np.max(np.hypot(state.velocity[dyn, 0], state.velocity[dyn, 1])
+                             + np.abs(state.omega[dyn]) * s.radius[dyn], initial=0.0))
+        return 2.0 * duration * (speed + 0.5 * s.g * duration)
+
     def ensure(self, state: State) -> Candidates:
         """The candidates of closed-form phases, detected now if there are none."""
         if self.near is None:

@@ -165,6 +165,19 @@ def _store(world: World, setup: Setup, state: State, t: float, out: tuple) -> No
     world.apply_prescribed_motion(state)
 
 
+# Candidates detected again are to last this many of the largest steps, at the bodies' speed.
+REDETECT_STEPS = 16
+
+
+def _redetect(watch: CandidateWatch, mode: Mode, state: State, margin: float, t_stop: float,
+              h_max: float) -> None:
+    """Detect the candidate collisions again, within ``margin`` (m) or what the bodies can
+    travel in the next ``REDETECT_STEPS`` steps, whichever is more: a part falling fast,
+    far from anything, would otherwise be detected again at every step."""
+    ahead = min(t_stop - state.t, REDETECT_STEPS * h_max)
+    watch.redetect(mode, state, max(margin, watch.travel_margin(state, ahead)))
+
+
 def follow_closed_form(world: World, setup: Setup, mode: Mode, state: State, t_stop: float,
                        h_max: float, watch: CandidateWatch, models: DriveModels,
                        pending: list[StepContacts], stats: SolverStats) -> bool:
@@ -190,7 +203,7 @@ def follow_closed_form(world: World, setup: Setup, mode: Mode, state: State, t_s
         if status == kern.REFRESH and t_new == t0:
             # Detected at another configuration, or a single step can outrun the margin.
             grow = 2.0 if cand.t == t0 else 1.0
-            watch.redetect(mode, state, grow * cand.margin)
+            _redetect(watch, mode, state, grow * cand.margin, t_stop, h_max)
             continue
         break
     else:
@@ -203,7 +216,7 @@ def follow_closed_form(world: World, setup: Setup, mode: Mode, state: State, t_s
         pending.append(StepContacts(contacts_at(mode, pos, ang), impulse[:k], impulse[k:]))
     _store(world, setup, state, t_new, setup.out)
     if status == kern.REFRESH:
-        watch.redetect(mode, state, cand.margin)
+        _redetect(watch, mode, state, cand.margin, t_stop, h_max)
     return status == kern.EVENT
 
 
@@ -264,5 +277,5 @@ def follow_chain(world: World, setup: Setup, mode: Mode, state: State, t_stop: f
                            kernel_held._replace(f0=res.f0, f1=res.f1), res.f0, res.f1)
         mode.candidates = near.without(features)
     if res.status == kern.REFRESH:
-        watch.redetect(mode, state, near.margin)
+        _redetect(watch, mode, state, near.margin, t_stop, h_max)
     return False, mode
