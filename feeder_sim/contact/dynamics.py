@@ -233,6 +233,7 @@ class SolverStats:
     cascades: int = 0          # event cascades stepped past (event driven)
     tangential_impacts: int = 0   # Painlevé sliding ended by an impulse (event driven)
     zeno_closures: int = 0     # accumulations of impacts ended at their limit (event driven)
+    slip_closures: int = 0     # slips left at a stop, ended by an impulse (event driven)
     frictionless_answers: int = 0  # LCPs whose fallback ladder ended without friction
     unresolved_force_lcps: int = 0  # force LCPs without an answer after the Painlevé impulse
     islands: int = 0           # islands with contacts, summed over steps (time stepping)

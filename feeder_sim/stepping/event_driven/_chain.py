@@ -163,7 +163,7 @@ class ChainResult(NamedTuple):
 DONE, EVENT, REFRESH = kern.DONE, kern.EVENT, kern.REFRESH
 # Statistics ``follow`` returns, by index.
 (N_LCPS, N_TRIVIAL, LCP_ROWS, MAX_ROWS, MAX_RESIDUAL, MAX_PENETRATION, PIVOTS, IMPACTS,
- ENERGY_FIXES, N_STATS) = range(10)
+ ENERGY_FIXES, SLIP_CLOSURES, N_STATS) = range(11)
 
 
 @jit
@@ -405,10 +405,11 @@ def _impacts(c, pos, ang, vel, om, world, tols, stats, rec, rows):
 
 
 @inner
-def _mode_at_event(t, c, pos, ang, vel, om, model, world, tols, acc, stats):
-    """The next mode over the contacts ``c`` (``EventDriven._choose_mode``):
-    ``(ok, contacts kept, friction, sigma, normal, r_a, r_b)``; not ok where the general
-    path must decide (a contact approaches, the LCP misses)."""
+def _mode_at_event(t, c, pos, ang, vel, om, model, world, tols, acc, stats, rec, rows):
+    """The next mode over the contacts ``c`` (``ContactModes.choose``, its slip closure
+    recorded from row ``rows`` of ``rec``): ``(ok, contacts kept, friction, sigma, normal,
+    r_a, r_b, rows)``; not ok where the general path must decide (a contact approaches, the
+    LCP misses)."""
     kind, index, drives = model.kind, model.index, model.drives
     dynamic, inv_mass, inv_inertia, _, gravity = world
     slip_tol, lcp_tol = tols.slip_tol_mps, tols.lcp_tol
@@ -420,7 +421,7 @@ def _mode_at_event(t, c, pos, ang, vel, om, model, world, tols, acc, stats):
     r_a, r_b = _arms(pos, c, point)
     v_n, v_t = kern.relative_velocity(normal, r_a, r_b, c.body_a, c.body_b, vel, om)
     fail = (False, c, np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 2)),
-            np.zeros((0, 2)), np.zeros((0, 2)))
+            np.zeros((0, 2)), np.zeros((0, 2)), rows)
     zeno = kern.zeno_speed(normal, c.body_a, c.body_b, dynamic, gravity, tols.touch_m)
     for i in range(k):
         # an approach, or a slow normal motion ContactModes.settle closes (Zeno)
@@ -457,8 +458,25 @@ def _mode_at_event(t, c, pos, ang, vel, om, model, world, tols, acc, stats):
     keep, friction, sigma = kern.mode_rows(f, a_rel, fr, mu_s, sigma, force_tol, acc_tol, a, b,
                                            normal)
     kept = np.flatnonzero(keep)
-    return (True, _take(c, kept), friction[kept], sigma[kept], normal[kept], r_a[kept],
-            r_b[kept])
+    c = _take(c, kept)
+    friction, sigma, normal, r_a, r_b = (friction[kept], sigma[kept], normal[kept], r_a[kept],
+                                         r_b[kept])
+    if kern.slip_left(friction, v_t[kept], slip_tol):
+        bodies = kern.sorted_unique(heap_arena(), c.body_a)
+        ok, J, minv, W = kern.contact_jacobian(normal, r_a, r_b, c.body_a, c.body_b, dynamic,
+                                               inv_mass, inv_inertia, bodies)
+        if not ok:
+            return fail
+        p = kern.stick_closure(W, v_n[kept], v_t[kept], friction)
+        dv = minv * (J.T @ p)
+        for q in range(bodies.shape[0]):
+            i = bodies[q]
+            vel[i, 0] += dv[3 * q]
+            vel[i, 1] += dv[3 * q + 1]
+            om[i] += dv[3 * q + 2]
+        rows = _record(c, point[rest][kept], normal, p, rec, rows)
+        stats[SLIP_CLOSURES] += 1
+    return True, c, friction, sigma, normal, r_a, r_b, rows
 
 
 @inner
@@ -575,13 +593,16 @@ def follow(t0, t_stop, h, state, model, world, held, mode, near, geometry, mater
             break
         # the general path chooses the mode again where this cannot: count its LCP only here
         before = stats.copy()
-        ok, c, friction_new, sigma_new, normal, r_a, r_b = _mode_at_event(
-            t, c, pos, ang, vel, om, model, world, tols, acc, stats)
+        ok, c, friction_new, sigma_new, normal, r_a, r_b, rows = _mode_at_event(
+            t, c, pos, ang, vel, om, model, world, tols, acc, stats, record, rows)
         if ok:
             ok, phi0_new, phi1_new, f0_new, f1_new = _closed_form(
                 c, friction_new, sigma_new, normal, r_a, r_b, om, model, world, tols)
         if not ok:
+            # (a slip closure stays: the general path finds the contacts at rest)
+            closures = stats[SLIP_CLOSURES]
             stats[:] = before
+            stats[SLIP_CLOSURES] = closures
             break
         held, friction, sigma = c, friction_new, sigma_new
         phi0, phi1, f0, f1 = phi0_new, phi1_new, f0_new, f1_new

@@ -852,6 +852,57 @@ def mode_rows(f, a_rel, fr, mu_s, sigma, force_tol, acc_tol, body_a, body_b, nor
     return keep, friction, new_sigma
 
 
+# A sticking contact still slipping faster than this share of the slip tolerance is stopped
+# by ``stick_closure`` (below it, the slip is the round-off of locating the event).
+SLIP_LEFT = 1e-2
+
+
+@jit
+def slip_left(friction, v_t, slip_tol):
+    """Whether a contact that sticks from now on still slips (``SLIP_LEFT``)."""
+    for i in range(friction.shape[0]):
+        if friction[i] == STICK and abs(v_t[i]) > SLIP_LEFT * slip_tol:
+            return True
+    return False
+
+
+@jit
+def stick_closure(W, v_n, v_t, friction):
+    """Stacked impulses (normal, then tangential; N s) that bring the held contacts to rest
+    along their normals and the sticking ones along their tangents too: the least-squares
+    answer of ``W p = -v`` over those rows (W the contacts' Delassus matrix, J M^-1 J^T),
+    which is the smallest change of velocity in the kinetic-energy norm.
+
+    A slip stops where its event function has passed the event threshold, so the contact
+    sticks from there with the slip reversed by up to ``EVENT_THRESHOLD`` times the speed
+    scale (~3e-10 m/s for a 20 mm part), which sticking keeps for good: a stopped part would
+    creep. The impulse stands for friction's over the time the stop was located late (at
+    most mu N times that time)."""
+    k = v_n.shape[0]
+    rows = np.empty(2 * k, np.int64)
+    m = 0
+    for i in range(k):
+        rows[m] = i
+        m += 1
+    for i in range(k):
+        if friction[i] == STICK:
+            rows[m] = k + i
+            m += 1
+    A = np.empty((m, m))
+    # one column, as closed_form_mode's lstsq takes it: no second specialisation to compile
+    rhs = np.empty((m, 1))
+    for r in range(m):
+        q = rows[r]
+        rhs[r, 0] = -v_n[q] if q < k else -v_t[q - k]
+        for c in range(m):
+            A[r, c] = W[q, rows[c]]
+    x = np.linalg.lstsq(A, rhs, 1e-12)[0]
+    p = np.zeros(2 * k)
+    for r in range(m):
+        p[rows[r]] = x[r, 0]
+    return p
+
+
 @jit
 def relative_velocity(normal, r_a, r_b, body_a, body_b, vel, omega):
     """Normal and tangential velocity of each contact's vertex relative to the edge's

@@ -301,3 +301,4 @@ def count_chain(stats: SolverStats, steps: int, events: int, sums: np.ndarray) -
     stats.pivots += int(sums[chain.PIVOTS])
     stats.impacts += int(sums[chain.IMPACTS])
     stats.energy_fixes += int(sums[chain.ENERGY_FIXES])
+    stats.slip_closures += int(sums[chain.SLIP_CLOSURES])

@@ -268,11 +268,27 @@ class ContactModes:
             keep[idx], friction[idx], sigma[idx] = kern.mode_rows(
                 f, a_rel, fr, sub.mu_static, sig, setup.force_scale * 1e-12, 1e-9 * setup.g,
                 sub.contacts.body_a, sub.contacts.body_b, sub.contacts.normal)
+            if kern.slip_left(friction[idx][keep[idx]], vt[keep[idx]], setup.slip_tol):
+                self.close_slip(sub.subset(np.flatnonzero(keep[idx])), state, bodies,
+                                vn[keep[idx]], vt[keep[idx]], friction[idx][keep[idx]],
+                                pending)
         sel = np.flatnonzero(keep)
         active = cs if len(sel) == k else cs.subset(sel)
         return ModeChoice(active.contacts, friction[sel], sigma[sel], groups(active),
                           ContactMaterial(active.mu_static, active.mu_dynamic,
                                           active.restitution), active)
+
+    def close_slip(self, cs: ContactSet, state: State, bodies: np.ndarray, v_n: np.ndarray,
+                   v_t: np.ndarray, friction: np.ndarray, pending: list[StepContacts]) -> None:
+        """Stop what is left of a slip at contacts that stick from now on, and the normal
+        motion of every held contact, by ``kern.stick_closure``'s impulse (recorded, counted
+        as ``slip_closures``). ``cs``: the contacts the mode holds, ``v_n, v_t`` their
+        relative velocities (m/s), ``friction`` their friction states."""
+        J, minv, W = jacobian(self.world, cs, bodies)
+        p = kern.stick_closure(W, v_n, v_t, friction)
+        self._apply(J, minv, p, state, bodies)
+        pending.append(StepContacts(cs, p[:cs.n], p[cs.n:]))
+        self.stats.slip_closures += 1
 
     def force_lcp(self, cs: ContactSet, state: State, acc: np.ndarray, bodies: np.ndarray,
                   v_n: np.ndarray, v_t: np.ndarray, sliding: np.ndarray, sigma: np.ndarray):

@@ -79,6 +79,13 @@ slower than gravity along its normal can lift it past ``touch_m`` ends the accum
 it converges (``ContactModes.close_accumulation``): the touching contacts take the
 minimum-energy impulse that stops their normal motion, counted as ``zeno_closures``. A 20 mm
 square released 0.2 rad from flat settles after 6 impacts instead of stalling.
+
+A slip stops where its event function has passed the event threshold, the slip reversed by
+up to that threshold times the speed scale (~3e-10 m/s for a 20 mm part); a sticking mode
+would keep that speed, and a stopped part would creep. The mode choice (Python's and the
+chain's) ends it with the minimum-energy impulse that brings the held contacts to rest,
+counted as ``slip_closures``: a box launched at 0.5 m/s stops where v0^2 / (2 a) says and
+moves less than a picometre in the 5 s after.
 """
 
 from __future__ import annotations
