@@ -553,6 +553,12 @@ FILE_ERRORS = [
     ('nan', FULL.replace('restitution: 0.0\n', 'restitution: .nan\n'), 'only finite', None),
     ('inf', FULL.replace('angle: 0.349', 'angle: -.inf'), 'only finite', None),
     ('list', '- name: a\n', 'expected the top level of the file to be a mapping', None),
+    # ten levels of nine aliases: 9^10 values from 400 bytes, walked once per object
+    ('alias bomb', 'a0: &a0 [x, x, x, x, x, x, x, x, x]\n' + ''.join(
+        f'a{i}: &a{i} [{", ".join([f"*a{i - 1}"] * 9)}]\n' for i in range(1, 11)),
+     'its YAML aliases expand to more than 1000000 values', None),
+    ('alias cycle', 'name: x\nbodies: &b [*b]\n', 'contains it; write the repeated part out',
+     None),
 ]
 
 
@@ -568,6 +574,13 @@ def test_bad_files_are_rejected(tmp_path, text, fragment, line):
     assert str(err).startswith(f'{path}: ')
     if line is not None:
         assert (err.path, err.line) == ('', line)
+
+
+def test_aliases_that_share_a_material_are_read(tmp_path):
+    # anchors and aliases within the limits are plain YAML: a material given once
+    text = FULL.replace('    mu_static: 0.5\n', '    <<: &steel {mu_static: 0.5}\n', 1)
+    assert '&steel' in text
+    assert load_scene(write(tmp_path, text)).bodies[0].mu_static == 0.5
 
 
 def test_nan_in_file_names_the_key(tmp_path):

@@ -74,6 +74,33 @@ def test_a_bad_study_file_is_one_line_naming_the_key(change, path, fragment):
     assert '\n' not in str(err.value)
 
 
+@pytest.mark.parametrize('text, fragment', [
+    ('duration: 0.2\nduration: 0.3\n', "duplicate key 'duration' at line 2"),
+    ('a0: &a0 [1, 1, 1, 1, 1, 1, 1, 1, 1]\n' + ''.join(
+        f'a{i}: &a{i} [{", ".join([f"*a{i - 1}"] * 9)}]\n' for i in range(1, 11)),
+     'its YAML aliases expand to more than'),
+    ('x: ' + '[' * 40 + ']' * 40 + '\n', 'nested deeper than 32 levels; a study file'),
+    (b'\x80\x81', 'not UTF-8 text'),
+], ids=['duplicate key', 'alias bomb', 'nesting', 'not utf-8'])
+def test_a_study_file_is_read_as_scene_files_are(tmp_path, text, fragment):
+    from feeder_sim.studies import load_study
+    path = tmp_path / 'study.yaml'
+    path.write_bytes(text if isinstance(text, bytes) else text.encode())
+    with pytest.raises(StudyError) as err:
+        load_study(path)
+    assert str(err.value).startswith(f'{path}: ') and fragment in str(err.value)
+    assert '\n' not in str(err.value)
+
+
+def test_a_study_file_takes_yaml_12_numbers(tmp_path):
+    from feeder_sim.studies import load_study
+    path = tmp_path / 'study.yaml'
+    path.write_text('scene: track_one_box\nduration: 2e-1\nrepeats: 1\nparameters:\n'
+                    '  bodies[track].vibration.amplitude: [2e-4]\nmetrics: [final_position_m]\n')
+    spec = load_study(path)
+    assert spec.duration_s == 0.2 and spec.parameters[0].values == (2e-4,)
+
+
 def test_designs_grid_and_latin_hypercube():
     spec = parse_study(SMALL)
     designs = spec.designs()

@@ -73,6 +73,7 @@ MAX_POLYGON_VERTICES = 1000
 MAX_PIECES = 200
 MAX_FILE_BYTES = 2 * 2 ** 20
 MAX_NESTING = 32
+MAX_VALUES = 1_000_000     # values a file may expand to through YAML aliases
 MIN_MASS_KG, MAX_MASS_KG = 1e-9, 1e6       # a dust grain to a machine base
 MIN_DENSITY, MAX_DENSITY = 1e-6, 1e6       # kg/m^2
 MIN_OUTLINE_M = 1e-6                       # an outline's extent: below it m r^2 underflows
@@ -1163,8 +1164,8 @@ def shipped_scenes() -> list[str]:
     for d in scene_dirs():
         for f in d.glob('*.yaml'):
             try:
-                data = yaml.load(f.read_text(encoding='utf-8'), Loader=_SceneLoader)
-            except (OSError, UnicodeError, yaml.YAMLError):
+                data = read_yaml(f)
+            except SceneError:
                 data = None   # listed anyway, so that loading it shows the problem
             if not _is_ros_params(data):
                 names.add(f.stem)
@@ -1196,31 +1197,48 @@ def _find(path_or_name: str | os.PathLike) -> Path:
 
 
 def _check_nesting(data: Any, source: str) -> None:
-    """Refuse data nested deeper than MAX_NESTING (iteratively: no recursion to exhaust)."""
-    stack = [(data, 1)]
+    """Refuse data nested deeper than MAX_NESTING, expanding to more than MAX_VALUES values or
+    holding itself. YAML aliases share one object among every place that names it, so a
+    file of a few hundred bytes can stand for billions of values (ten levels of nine
+    aliases): each object is visited once, iteratively, and its expanded size and depth are
+    summed from its children's."""
+    done: dict[int, tuple[int, int] | None] = {}     # id -> (values, depth); None: open
+    stack: list[tuple[Any, bool]] = [(data, False)]
     while stack:
-        item, depth = stack.pop()
-        if isinstance(item, (dict, list)):
-            if depth > MAX_NESTING:
-                raise SceneError(f'nested deeper than {MAX_NESTING} levels; a scene file needs '
-                                 'about 6', source=source)
-            children = item.values() if isinstance(item, dict) else item
-            stack.extend((child, depth + 1) for child in children)
+        item, closing = stack.pop()
+        if not isinstance(item, (dict, list)):
+            continue
+        kids = [c for c in (item.values() if isinstance(item, dict) else item)
+                if isinstance(c, (dict, list))]
+        if not closing:
+            if id(item) in done:
+                continue
+            done[id(item)] = None
+            stack.append((item, True))
+            for kid in kids:
+                if id(kid) in done and done[id(kid)] is None:
+                    raise SceneError('a YAML alias refers to a mapping or list that contains '
+                                     'it; write the repeated part out', source=source)
+                stack.append((kid, False))
+            continue
+        sizes = [done[id(kid)] for kid in kids]
+        values = len(item) + sum(v for v, _ in sizes)
+        depth = 1 + max((d for _, d in sizes), default=0)
+        if depth > MAX_NESTING:
+            raise SceneError(f'nested deeper than {MAX_NESTING} levels; a scene file needs '
+                             'about 6', source=source)
+        if values > MAX_VALUES:
+            raise SceneError(f'its YAML aliases expand to more than {MAX_VALUES} values; a '
+                             'scene file needs some thousands: write repeated parts out or '
+                             'name fewer aliases', source=source)
+        done[id(item)] = (values, depth)
 
 
-def load_scene(path_or_name: str | os.PathLike,
-               parameters: Mapping[str, float] | None = None) -> Scene:
-    """Load and validate a scene file, given its path or the name of a shipped scene (and the
-    values of its named parameters where not the defaults)."""
-    data, source = read_scene_data(path_or_name)
-    return parse_scene(data, source, parameters)
-
-
-def read_scene_data(path_or_name: str | os.PathLike) -> tuple[Any, str]:
-    """The plain data of a scene file (not yet validated) and its path, for tools that edit a
-    scene before :func:`parse_scene` checks it; raises SceneError for what no reader takes."""
-    path = _find(path_or_name)
-    source = str(path)
+def read_yaml(path: Path, source: str | None = None) -> Any:
+    """The plain data of a YAML file as scene files are read (module docstring: YAML 1.2
+    floats, no duplicate keys), within MAX_FILE_BYTES, MAX_NESTING and MAX_VALUES; any
+    problem is one SceneError naming ``source`` (default: the path) and the fix."""
+    source = str(path) if source is None else source
     try:
         size = path.stat().st_size
         if size > MAX_FILE_BYTES:
@@ -1254,6 +1272,23 @@ def read_scene_data(path_or_name: str | os.PathLike) -> tuple[Any, str]:
                          line=line, column=column) from None
     except yaml.YAMLError as err:
         raise SceneError(f'YAML error: {err}', source=source) from None
+    return data
+
+
+def load_scene(path_or_name: str | os.PathLike,
+               parameters: Mapping[str, float] | None = None) -> Scene:
+    """Load and validate a scene file, given its path or the name of a shipped scene (and the
+    values of its named parameters where not the defaults)."""
+    data, source = read_scene_data(path_or_name)
+    return parse_scene(data, source, parameters)
+
+
+def read_scene_data(path_or_name: str | os.PathLike) -> tuple[Any, str]:
+    """The plain data of a scene file (not yet validated) and its path, for tools that edit a
+    scene before :func:`parse_scene` checks it; raises SceneError for what no reader takes."""
+    path = _find(path_or_name)
+    source = str(path)
+    data = read_yaml(path, source)
     if data is None:
         raise SceneError('the file is empty; expected a mapping with at least `bodies`',
                          source=source)

@@ -35,9 +35,15 @@ import re
 from typing import Any
 
 import numpy as np
-import yaml
 
-from feeder_sim.model.scene import METHODS, parse_scene, read_scene_data, Scene, SceneError
+from feeder_sim.model.scene import (
+    METHODS,
+    parse_scene,
+    read_scene_data,
+    read_yaml,
+    Scene,
+    SceneError,
+)
 from feeder_sim.simulator import MAX_PUBLISH_RATE_HZ
 
 MAX_TRIALS = 100_000
@@ -369,9 +375,9 @@ def scene_of_design(spec: StudySpec, design: Mapping[str, float]) -> Scene:
 def load_study(path: str | Path) -> StudySpec:
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text(encoding='utf-8'))
-    except OSError as err:
-        raise StudyError(f'cannot read the file: {err.strerror}', '', str(path)) from None
-    except yaml.YAMLError as err:
-        raise StudyError(f'YAML error: {str(err).splitlines()[0]}', '', str(path)) from None
+        # read as scene files are: YAML 1.2 numbers, no duplicate keys, bounded size and depth
+        data = read_yaml(path)
+    except SceneError as err:
+        raise StudyError(err.message.replace('scene file', 'study file'), '',
+                         str(path)) from None
     return parse_study(data, str(path), path)
