@@ -5,26 +5,110 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 from pathlib import Path
+import signal
 import sys
+import threading
 
 from feeder_sim import __version__
 
 
+class _StopSignals:
+    """SIGINT and SIGTERM during ``feeder-sim run``. Until the first frame is recorded
+    (loading, compiling: native code that holds Python's handlers off for up to a minute)
+    nothing of the run exists, so the process ends at once, from a thread woken by the
+    signal, and removes the log it had begun (``unfinished``). After, the run ends after the
+    frame under way: the log is finalized, the summary and the plot cover the time
+    simulated, and the exit status is 128 + the signal's number."""
+
+    def __init__(self) -> None:
+        self.received: int | None = None
+        self.running = threading.Event()
+        self.unfinished: Path | None = None
+
+    def __enter__(self) -> _StopSignals:
+        self._handlers = {sig: signal.signal(sig, self._handle)
+                          for sig in (signal.SIGINT, signal.SIGTERM)}
+        woken, self._marked = os.pipe()
+        os.set_blocking(self._marked, False)
+        self._wakeup = signal.set_wakeup_fd(self._marked, warn_on_full_buffer=False)
+        threading.Thread(target=self._watch, args=(woken,), daemon=True).start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        # the caller's handlers back (a test, a script calling main())
+        signal.set_wakeup_fd(self._wakeup)
+        for sig, handler in self._handlers.items():
+            signal.signal(sig, handler)
+        os.close(self._marked)     # the watcher reads the end of the pipe and leaves
+
+    def _handle(self, signum: int, frame) -> None:
+        self.received = signum
+
+    def _watch(self, woken: int) -> None:
+        with os.fdopen(woken, 'rb', buffering=0) as pipe:
+            while data := pipe.read(1):
+                if not self.running.is_set():
+                    if self.unfinished is not None:
+                        self.unfinished.unlink(missing_ok=True)
+                    print(f'feeder-sim: stopped by {signal.Signals(data[0]).name} before the '
+                          'first frame; nothing written', file=sys.stderr, flush=True)
+                    os._exit(128 + data[0])
+
+    def reason(self) -> str | None:
+        return None if self.received is None else signal.Signals(self.received).name
+
+
+def _output_file(option: str, value: str | None, kinds: tuple[str, ...] = ()) -> Path | None:
+    """The file an option names, checked before the run (where it can be written, and its
+    kind by suffix): a bad one is one line naming the option, not a failure after the run."""
+    if not value:
+        return None
+    path = Path(value)
+    if kinds and path.suffix.lower().lstrip('.') not in kinds:
+        raise ValueError(f'{option} {value}: expected a file name ending in one of '
+                         f'{", ".join("." + k for k in kinds)}')
+    if path.is_dir():
+        raise ValueError(f'{option} {value}: is a directory; give a file name in it')
+    parent = path.parent
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise ValueError(f'{option} {value}: {parent} is a file, not a directory') from None
+    except OSError as err:
+        raise ValueError(f'{option} {value}: cannot create {parent} ({err.strerror})') from None
+    if not os.access(parent, os.W_OK):
+        raise ValueError(f'{option} {value}: {parent} is not writable')
+    return path
+
+
+def _plot_kinds() -> tuple[str, ...]:
+    from matplotlib.backend_bases import FigureCanvasBase
+    return tuple(FigureCanvasBase.get_supported_filetypes())
+
+
 def _run(args: argparse.Namespace) -> int:
+    with _StopSignals() as stops:
+        return _run_until_stopped(args, stops)
+
+
+def _run_until_stopped(args: argparse.Namespace, stops: _StopSignals) -> int:
     from feeder_sim.run import plot_trajectory, run, write_summary
     from feeder_sim.simulator import Simulator
 
+    record = _output_file('--record', args.record)
+    summary_path = _output_file('--summary', args.summary)
+    plot = _output_file('--plot', args.plot, _plot_kinds()) if args.plot else (
+        record.with_suffix('.png') if record else None)
     sim = Simulator(args.scene, method=args.method, time_step=args.time_step,
                     tolerance=args.tolerance, check_energy=args.check_energy)
-    if args.record:
-        Path(args.record).parent.mkdir(parents=True, exist_ok=True)
-    result = run(sim, args.duration, publish_rate_hz=args.publish_rate, record=args.record,
-                 log_time=args.log_time)
-    if args.summary:
-        Path(args.summary).parent.mkdir(parents=True, exist_ok=True)
-        write_summary(result.summary, args.summary)
-    plot = args.plot or (Path(args.record).with_suffix('.png') if args.record else None)
+    stops.unfinished = record
+    result = run(sim, args.duration, publish_rate_hz=args.publish_rate, record=record,
+                 log_time=args.log_time, stop_reason=stops.reason,
+                 on_frame=lambda _: stops.running.set())
+    if summary_path:
+        write_summary(result.summary, summary_path)
     if plot:
         plot_trajectory(result.trajectory, plot, f'{sim.scene.name} ({sim.method})')
     s = result.summary
@@ -39,6 +123,11 @@ def _run(args: argparse.Namespace) -> int:
             print(f'  {label}: {path}')
     if args.json:
         print(json.dumps(s, indent=2))
+    if 'stopped' in s:
+        print(f"feeder-sim: stopped by {s['stopped']['reason']} after {s['simulated_s']:.3f} of "
+              f"{s['stopped']['planned_s']:g} s simulated; the files above hold that much",
+              file=sys.stderr)
+        return 128 + signal.Signals[s['stopped']['reason']].value
     return 0
 
 

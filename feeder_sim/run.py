@@ -62,12 +62,16 @@ class RunResult:
 def run(sim: Simulator, duration_s: float, *, publish_rate_hz: float = 100.0,
         record: str | os.PathLike | None = None,
         on_frame: Callable[[Simulator], None] | None = None,
-        progress_every_s: float = 5.0, log_time: str = 'wall') -> RunResult:
+        progress_every_s: float = 5.0, log_time: str = 'wall',
+        stop_reason: Callable[[], str | None] | None = None) -> RunResult:
     """Advance ``sim`` by ``duration_s`` of simulated time; returns the summary and samples.
 
     Frames are taken every 1/``publish_rate_hz`` s of simulated time; each frame is recorded
     when ``record`` names an MCAP file. A log line reports progress every
-    ``progress_every_s`` of wall time. ``log_time``: see ``frames.open_recorder``.
+    ``progress_every_s`` of wall time. ``log_time``: see ``frames.open_recorder``. After
+    each frame ``stop_reason`` (if given) may end the run early: the log is finalized as at
+    the end, and the summary covers the time simulated and says why it stopped
+    (``stopped``).
     """
     sim.check_duration(duration_s)
     if not (0 < publish_rate_hz <= MAX_PUBLISH_RATE_HZ):
@@ -87,6 +91,7 @@ def run(sim: Simulator, duration_s: float, *, publish_rate_hz: float = 100.0,
     last_report = wall0
     s, v = sim.track_coordinates()
     traj.add(sim.t, names, s, v)
+    stopped = None
     try:
         for k in range(1, n_frames + 1):
             sim.advance_to(t0 + min(k * period, duration_s))
@@ -103,13 +108,19 @@ def run(sim: Simulator, duration_s: float, *, publish_rate_hz: float = 100.0,
                 last_report = now
                 log.info('t = %.3f / %.3f s simulated (%.0f%%), %.1f s wall',
                          sim.t - t0, duration_s, 100 * k / n_frames, now - wall0)
+            stopped = stop_reason() if stop_reason is not None else None
+            if stopped is not None and k < n_frames:
+                break
+            stopped = None
         if recorder is not None:
             recorder.write_metadata('outcomes', {'json': json.dumps(outcomes.summary())})
     finally:
         if recorder is not None:
             recorder.close()
     wall = time.perf_counter() - wall0
-    result = summary(sim, traj, wall, duration_s)
+    result = summary(sim, traj, wall, duration_s if stopped is None else sim.t - t0)
+    if stopped is not None:
+        result['stopped'] = {'reason': stopped, 'planned_s': float(duration_s)}
     result['outcomes'] = outcomes.summary()
     if sensors.specs:
         result['sensors'] = {spec.name: count

@@ -2,8 +2,11 @@
 
 import json
 import math
+import os
+import signal
 import subprocess
 import sys
+import time
 
 from mcap_ros2.reader import read_ros2_messages
 import numpy as np
@@ -94,8 +97,18 @@ bodies:
     (['run', 'track_one_box', '--duration', 'inf'], 'duration must be a positive number'),
     (['run', 'track_one_box', '--duration', '1', '--publish-rate', '1e9'],
      'publish rate must be a number of Hz in (0, 100000]'),
+    # output files are checked before the run, each naming its option
+    (['run', 'track_one_box', '--duration', '1', '--summary', '{tmp}'],
+     '--summary {tmp}: is a directory; give a file name in it'),
+    (['run', 'track_one_box', '--duration', '1', '--plot', '{tmp}/p.notanimage'],
+     '--plot {tmp}/p.notanimage: expected a file name ending in one of .'),
+    (['run', 'track_one_box', '--duration', '1', '--record', '{tmp}/f/x.mcap'],
+     '--record {tmp}/f/x.mcap: {tmp}/f is a file, not a directory'),
 ])
-def test_bad_input_is_one_clear_line(args, message):
+def test_bad_input_is_one_clear_line(args, message, tmp_path):
+    (tmp_path / 'f').write_text('')
+    args = [a.replace('{tmp}', str(tmp_path)) for a in args]
+    message = message.replace('{tmp}', str(tmp_path))
     proc = subprocess.run([sys.executable, '-m', 'feeder_sim.cli', *args],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2
@@ -200,3 +213,79 @@ def test_log_times_start_at_the_run_or_at_zero(tmp_path, log_time):
               for m in poses]
     assert stamps == [k * 10_000_000 for k in range(1, 6)]
     assert [m.log_time_ns for m in poses] == [origin + s for s in stamps]
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize('sig', [signal.SIGTERM, signal.SIGINT], ids=['SIGTERM', 'SIGINT'])
+def test_a_stop_signal_ends_the_run_with_its_files_whole(tmp_path, sig):
+    """SIGTERM or SIGINT in the middle of a run: the run ends after the frame under way, the
+    MCAP is finalized (an independent reader reads every frame whole), the summary covers
+    the time simulated and says why, one line says so, exit status 128 + the signal."""
+    log, summary = tmp_path / 'run.mcap', tmp_path / 'run.json'
+    proc = subprocess.Popen(
+        [sys.executable, '-m', 'feeder_sim.cli', 'run', 'track_one_box', '--duration', '1e4',
+         '--record', str(log), '--summary', str(summary)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        # a run started in the background of a script would inherit SIGINT ignored
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        # until frames are being written (kernels loaded, compiled on a cold cache)
+        deadline = time.monotonic() + 240
+        while (not log.exists() or log.stat().st_size < 200_000) and \
+                time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.05)
+        proc.send_signal(sig)
+        sent = time.monotonic()
+        out, err = proc.communicate(timeout=60)
+        took = time.monotonic() - sent
+    finally:
+        proc.kill()
+    assert proc.returncode == 128 + sig, err
+    assert 'Traceback' not in err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith(f'feeder-sim: stopped by {sig.name} after '), err
+    assert took < 5.0, took        # a frame, the summary and the plot: well under a second
+    data = json.loads(summary.read_text())
+    assert data['stopped'] == {'reason': sig.name, 'planned_s': 1e4}
+    frames = {}
+    from mcap.reader import make_reader
+    with open(log, 'rb') as f:
+        reader = make_reader(f)
+        assert reader.get_summary() is not None           # finalized: summary section
+        for _, channel, _ in reader.iter_messages():
+            frames[channel.topic] = frames.get(channel.topic, 0) + 1
+    n = round(data['simulated_s'] * 100)                  # 100 frames per simulated second
+    assert n > 10
+    for topic in ('/clock', '/feeder_sim/part_poses', '/feeder_sim/contacts'):
+        assert frames[topic] == n, (topic, frames)
+
+
+@pytest.mark.timeout(300)
+def test_a_stop_signal_while_compiling_ends_the_run_at_once(tmp_path):
+    """Before the first frame (here: compiling on a cold cache, native code that holds
+    Python's signal handlers off for up to a minute) nothing is written: the process ends at
+    once with one line and leaves no log behind."""
+    err_path = tmp_path / 'err.txt'
+    env = {**os.environ, 'FEEDER_SIM_CACHE_DIR': str(tmp_path / 'cache')}
+    with open(err_path, 'w') as err:
+        proc = subprocess.Popen(
+            [sys.executable, '-m', 'feeder_sim.cli', 'run', 'track_one_box', '--duration', '1',
+             '--record', str(tmp_path / 'run.mcap')], stdout=subprocess.DEVNULL, stderr=err,
+            env=env)
+    try:
+        deadline = time.monotonic() + 60
+        while 'compiling numba kernels' not in err_path.read_text() and \
+                time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.05)
+        time.sleep(1.0)
+        proc.send_signal(signal.SIGTERM)
+        sent = time.monotonic()
+        proc.wait(timeout=60)
+        took = time.monotonic() - sent
+    finally:
+        proc.kill()
+    lines = err_path.read_text().strip().splitlines()
+    assert proc.returncode == 128 + signal.SIGTERM, lines
+    assert lines[-1] == 'feeder-sim: stopped by SIGTERM before the first frame; nothing written'
+    assert took < 10.0, took
+    assert not (tmp_path / 'run.mcap').exists()
