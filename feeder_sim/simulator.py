@@ -9,7 +9,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 import copy
 from dataclasses import dataclass, replace
 import logging
@@ -179,8 +179,9 @@ class EnergyCheck:
     """
 
     def __init__(self, sim: Simulator, tolerance: float, *, raise_error: bool = True) -> None:
-        if not tolerance >= 0.0:
-            raise ValueError(f'the energy check tolerance must be >= 0, got {tolerance!r}')
+        if not (is_number(tolerance) and tolerance >= 0.0):
+            raise ValueError('check_energy must be a tolerance >= 0 (relative to the energy '
+                             f'scale, e.g. 1e-6), got {tolerance!r}')
         self.sim = sim
         self.tolerance = float(tolerance)
         self.raise_error = raise_error
@@ -315,8 +316,13 @@ class Simulator:
         ``check_energy``: a tolerance (relative to :meth:`energy_scale_j`) for the energy
         invariant checked after every step or event (:class:`EnergyCheck`); a debug mode,
         also set by the environment variable ``FEEDER_SIM_CHECK_ENERGY``."""
-        if not isinstance(scene, Scene):
+        if isinstance(scene, Mapping):
+            scene = parse_scene(scene)
+        elif isinstance(scene, (str, os.PathLike)):
             scene = load_scene(scene)
+        elif not isinstance(scene, Scene):
+            raise TypeError('scene must be a Scene, the data of a scene file (a mapping), a '
+                            f'scene file path or a shipped scene name, got {type(scene).__name__}')
         if time_step is None and method == 'time_stepping' != scene.solver.method:
             step = fixed_time_step(scene)
             if step < scene.solver.time_step:
@@ -374,6 +380,11 @@ class Simulator:
         if not is_number(t_end) or not math.isfinite(t_end):
             raise ValueError(f't_end must be a finite number of seconds, got {t_end!r}')
         self._check_state()
+        h = self.scene.solver.time_step
+        if (t_end - self.t) / h > MAX_STEPS_PER_RUN:
+            raise ValueError(f't_end {t_end:g} s is more than {MAX_STEPS_PER_RUN:.0e} steps of '
+                             f'{h:g} s ahead of t = {self.t:g} s; go on by at most '
+                             f'{MAX_STEPS_PER_RUN * h:g} s per call')
         if self.feed is None:
             self._step_to(t_end)
         elif t_end > self.t:
@@ -441,6 +452,7 @@ class Simulator:
 
     def advance_by(self, duration_s: float) -> None:
         """Integrate ``duration_s`` (s, > 0) of simulated time from now on."""
+        self._check_state()
         self.check_duration(duration_s)
         self.advance_to(self.t + duration_s)
 
@@ -464,6 +476,9 @@ class Simulator:
 
         A command that changes nothing (a controller republishing its setpoint) leaves the
         motion and the stepper as they are."""
+        if not (is_number(amplitude_m) and is_number(frequency_hz)):
+            raise ValueError('amplitude_m and frequency_hz must be finite numbers >= 0, got '
+                             f'{amplitude_m!r}, {frequency_hz!r}')
         drives = [self.world.drives[i] for i in self.world.driven]
         if all(d.amplitude_m == amplitude_m and d.frequency_hz == frequency_hz for d in drives):
             return

@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 import yaml
 
-from feeder_sim.model.scene import parse_scene, SceneError, shipped_scenes
+from feeder_sim.model.scene import parse_scene, read_scene_data, SceneError, shipped_scenes
 from feeder_sim.simulator import Simulator
 from feeder_sim.stepping import EventSettings, ImpulseSettings, TimeStepSettings
 
@@ -300,6 +300,8 @@ def test_a_state_time_that_is_not_a_finite_number_is_refused():
         sim.state.t = bad
         with pytest.raises(ValueError, match=r'^state\.t must be a finite number of seconds'):
             sim.advance(0.02)
+        with pytest.raises(ValueError, match=r'^state\.t must be a finite number of seconds'):
+            sim.advance_by(0.02)
 
 
 API_MISUSE = [
@@ -312,7 +314,32 @@ API_MISUSE = [
      r'^velocity must be \[vx, vy, omega\] in m/s and rad/s'),
     (lambda s: s.command_vibration('a', 50.0),
      r'^amplitude_m and frequency_hz must be finite numbers >= 0'),
+    (lambda s: s.command_vibration(np.array([1e-3, 2e-3]), 50.0),
+     r'^amplitude_m and frequency_hz must be finite numbers >= 0, got array'),
+    # a time so far ahead that the run would never end, as advance_by refuses its duration
+    (lambda s: s.advance_to(1e300), r'^t_end 1e\+300 s is more than 1e\+12 steps of 0.001 s '
+                                    r'ahead of t = 0.01 s; go on by at most 1e\+09 s per call$'),
 ]
+
+
+@pytest.mark.parametrize('args, kw, error, message', [
+    (('',), {}, SceneError, r'^<scene>: no scene given: name a scene file or a shipped scene '),
+    ((3,), {}, TypeError, r'^scene must be a Scene, the data of a scene file \(a mapping\), '
+                          r'a scene file path or a shipped scene name, got int$'),
+    (('track_one_box',), {'check_energy': 'x'}, ValueError,
+     r"^check_energy must be a tolerance >= 0 \(relative to the energy scale, e.g. 1e-6\), "
+     r"got 'x'$"),
+], ids=['empty name', 'not a scene', 'energy tolerance'])
+def test_a_simulator_that_cannot_be_made_is_one_line(args, kw, error, message):
+    with pytest.raises(error, match=message):
+        Simulator(*args, **kw)
+
+
+def test_a_simulator_takes_the_data_of_a_scene_file():
+    sims = Simulator(read_scene_data('track_one_box')[0]), Simulator('track_one_box')
+    for sim in sims:
+        sim.advance_to(0.05)
+    assert np.array_equal(sims[0].state.position, sims[1].state.position)
 
 
 @pytest.mark.parametrize('case', range(len(API_MISUSE)))

@@ -737,8 +737,11 @@ def test_numbers_may_be_expressions_of_named_parameters():
     ({'bodies[1].mass': "'heavy'"}, {}, 'bodies[1].mass', "gives the text 'heavy'"),
     ({'parameters': {'sin': 1.0}}, {}, 'parameters.sin', 'taken by a function'),
     ({'parameters': {'2x': 1.0}}, {}, 'parameters.2x', 'not a name'),
+    ({'bodies[1].mass': '+'.join(['0.001'] * 50_000)}, {}, 'bodies[1].mass',
+     'an expression of 299999 characters'),
+    ({'bodies[1].mass': '-' * 990 + '0.01'}, {}, 'bodies[1].mass', 'nested too deeply'),
 ], ids=['out of bounds', 'unknown', 'undefined name', 'no calls', 'zero division',
-        'huge power', 'text result', 'function name', 'bad name'])
+        'huge power', 'text result', 'function name', 'bad name', 'long', 'deep'])
 def test_parameter_and_expression_errors_name_the_key(changes, given, path, fragment):
     data = copy.deepcopy(PARAMETRIC)
     for key, value in changes.items():

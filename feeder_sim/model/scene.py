@@ -386,13 +386,25 @@ EXPRESSION_FUNCTIONS = {name: getattr(math, name) for name in (
 EXPRESSION_CONSTANTS = {'pi': math.pi, 'g': 9.81}
 
 
+# An expression's length: a formula of a few parameters is tens of characters; Python's
+# parser recurses per nesting level and runs out of stack (or memory) on ~100 000.
+MAX_EXPRESSION_CHARS = 1000
+
+
 def _evaluate(text: str, path: str, values: Mapping[str, float]) -> float:
     """A number from an expression of the scene's parameters (simpleeval: arithmetic, the
     functions above, no attribute access, no calls of anything else)."""
+    if len(text) > MAX_EXPRESSION_CHARS:
+        raise _Invalid(path, f'an expression of {len(text)} characters ({text[:40]!r}...); '
+                             f'expressions are limited to {MAX_EXPRESSION_CHARS}: name a '
+                             'parameter for the repeated part')
     evaluator = simpleeval.SimpleEval(names={**EXPRESSION_CONSTANTS, **values},
                                       functions=EXPRESSION_FUNCTIONS)
     try:
         result = evaluator.eval(text)
+    except (RecursionError, MemoryError):
+        raise _Invalid(path, f'{text[:40]!r}... is nested too deeply to evaluate; write it '
+                             'with fewer parentheses or signs') from None
     except (simpleeval.InvalidExpression, SyntaxError, ArithmeticError, TypeError,
             ValueError) as err:
         known = ', '.join(sorted(values)) or 'none'
@@ -1174,6 +1186,9 @@ def shipped_scenes() -> list[str]:
 
 def _find(path_or_name: str | os.PathLike) -> Path:
     given = os.fspath(path_or_name)
+    if not str(given).strip():
+        raise SceneError('no scene given: name a scene file or a shipped scene ('
+                         f'{", ".join(shipped_scenes()) or "none found"})', source='<scene>')
     path = Path(given)
     if path.is_file():
         return path
