@@ -95,10 +95,27 @@ def test_a_fed_track_feeds_at_the_source_rate(dt):
      'sources[0].orientations', 'add up to 1.6'),
     ({'region': {'x': [1.0, 0.0], 'y': [0.0, 0.1]}}, 'sources[0].region.x', 'is empty'),
     ({'rate': 2.0}, 'sources[0]', 'either interval (s between parts) or rate'),
-], ids=['template', 'interval', 'shares', 'region', 'both'])
+    ({'count': 2.5}, 'sources[0].count', 'expected a whole number in [0, 1000000], got 2.5'),
+    ({'seed': 1.7}, 'sources[0].seed', 'expected a whole number in [0, 4294967296], got 1.7'),
+], ids=['template', 'interval', 'shares', 'region', 'both', 'count', 'seed'])
 def test_bad_sources_are_one_line_naming_the_key(change, path, fragment):
     data = copy.deepcopy(FED)
     data['sources'][0].update(change)
+    with pytest.raises(SceneError) as err:
+        parse_scene(data)
+    assert err.value.path == path and fragment in err.value.message, str(err.value)
+
+
+@pytest.mark.parametrize('sink, path, fragment', [
+    ({}, 'sinks[0]', 'give below (m) or past_exit: true'),
+    ({'below': None, 'past_exit': False}, 'sinks[0]', 'give below (m) or past_exit: true'),
+    ({'past_exit': True}, 'sinks[0].past_exit',
+     'the scene has no exit: give outcomes.exit_position'),
+], ids=['empty', 'neither', 'no exit'])
+def test_a_sink_that_could_never_take_a_part_is_refused(sink, path, fragment):
+    data = copy.deepcopy(FED)
+    data.pop('outcomes', None)
+    data['sinks'] = [sink]
     with pytest.raises(SceneError) as err:
         parse_scene(data)
     assert err.value.path == path and fragment in err.value.message, str(err.value)

@@ -480,6 +480,16 @@ BAD = [
      ['[0, 0, 0]', 'vibration']),
     ('unknown track', {'track': 'trak'}, 'track',
      ["no body named 'trak'", "did you mean 'track'?", 'track, part_0']),
+    # angles bounded as pose angles are: beyond 1000 rad sin/cos lose the direction
+    ('huge drive angle', {'bodies[0].vibration.angle': 1e300}, 'bodies[0].vibration.angle',
+     ['in [-1000, 1000]']),
+    ('huge drive phase', {'bodies[0].vibration.phase': -2e3}, 'bodies[0].vibration.phase',
+     ['in [-1000, 1000]']),
+    # names become ROS frame ids and key paths
+    ('name with a slash', {'bodies[1].name': 'a/b'}, 'bodies[1].name',
+     ["'a/b' is not a body name: use letters, digits, _ and -"]),
+    ('name with a newline', {'bodies[1].name': 'a\nb'}, 'bodies[1].name',
+     ['is not a body name']),
     # structure
     ('no bodies key', {'bodies': DEL}, 'bodies', ["missing required key 'bodies'"]),
     ('empty bodies', {'bodies': []}, 'bodies', ['non-empty list']),

@@ -624,8 +624,9 @@ _VIBRATION = {
                         'the displacement amplitude in m (0-peak)'),
     'frequency': _Field(_drive_value('frequency', _num(0.0, MAX_FREQUENCY_HZ, unit='Hz')),
                         'the frequency in Hz'),
-    'angle': _Field(_num(unit='rad'), 'the direction in rad from the body x axis'),
-    'phase': _Field(_num(unit='rad'), 'the phase in rad', 0.0),
+    'angle': _Field(_num(-MAX_ANGLE_RAD, MAX_ANGLE_RAD, unit='rad'),
+                    'the direction in rad from the body x axis'),
+    'phase': _Field(_num(-MAX_ANGLE_RAD, MAX_ANGLE_RAD, unit='rad'), 'the phase in rad', 0.0),
 }
 
 
@@ -656,7 +657,7 @@ def _solver(value, path: str) -> SolverSpec:
 
 
 _BODY = {
-    'name': _Field(_string, 'a unique name'),
+    'name': _Field(lambda v, p: _body_name(v, p), 'a unique name'),
     'type': _Field(lambda v, p: _choice(v, p, BODY_TYPES), 'one of ' + ', '.join(BODY_TYPES)),
     'polygon': _Field(_polygon, 'a list of [x, y] vertices (m)', None),
     'polygons': _Field(_pieces, 'a list of convex pieces', None),
@@ -845,9 +846,9 @@ _SOURCE = {
     'region': _Field(_region, '{x: [low, high], y: [low, high]} (m)'),
     'orientations': _Field(_orientations_drawn, 'name: {angle: rad, share: fraction}', None),
     'start': _Field(_num(0.0, unit='s'), 'the first arrival, s', 0.0),
-    'count': _Field(lambda v, p: int(_number(v, p, 0, 1e6)), 'a number of parts (0: no limit)',
+    'count': _Field(lambda v, p: _whole(v, p, 0, 10 ** 6), 'a number of parts (0: no limit)',
                     0),
-    'seed': _Field(lambda v, p: int(_number(v, p, 0, 2 ** 32)), 'a whole number', 0),
+    'seed': _Field(lambda v, p: _whole(v, p, 0, 2 ** 32), 'a whole number', 0),
 }
 _SINK = {
     'below': _Field(lambda v, p: None if v is None else _number(v, p, -MAX_LENGTH_M,
@@ -887,6 +888,25 @@ def _sensor_line(value, path: str) -> tuple[tuple[float, float], tuple[float, fl
         raise _Invalid(path, f'the two points are {math.hypot(*(b - a)):.3g} m apart; a sensor '
                              f'line needs at least {MIN_OUTLINE_M:g} m')
     return (float(a[0]), float(a[1])), (float(b[0]), float(b[1]))
+
+
+def _whole(value, path: str, lo: int, hi: int) -> int:
+    x = _number(value, path, lo, hi)
+    if x != int(x):
+        raise _Invalid(path, f'expected a whole number in [{lo}, {hi}], got {x!r}')
+    return int(x)
+
+
+# Body names end up in ROS frame ids (tf), key paths (bodies[name].mass) and CSV columns.
+_BODY_NAME = re.compile(r'[A-Za-z0-9_][A-Za-z0-9_-]*\Z')
+
+
+def _body_name(value, path: str) -> str:
+    name = _string(value, path)
+    if not _BODY_NAME.match(name):
+        raise _Invalid(path, f'{name!r} is not a body name: use letters, digits, _ and - (it '
+                             'names a ROS frame and a key path such as bodies[name].mass)')
+    return name
 
 
 def _sensor_name(value, path: str) -> str:
@@ -931,8 +951,14 @@ def _sinks(value, path: str) -> tuple[SinkSpec, ...]:
         return ()
     if not _is_list(value):
         raise _Invalid(path, f'expected a list of sinks, got {_describe(value)}')
-    return tuple(SinkSpec(**_fields(item, f'{path}[{k}]', _SINK))
-                 for k, item in enumerate(value))
+    out = []
+    for k, item in enumerate(value):
+        sink = SinkSpec(**_fields(item, f'{path}[{k}]', _SINK))
+        if sink.below is None and not sink.past_exit:
+            raise _Invalid(f'{path}[{k}]', 'a sink takes parts below a height or past the exit: '
+                                           'give below (m) or past_exit: true')
+        out.append(sink)
+    return tuple(out)
 
 
 _TOP = {
@@ -957,7 +983,8 @@ _TOP = {
 
 
 _OUTCOMES = {
-    'exit_position': _Field(lambda v, p: None if v is None else _number(v, p, unit='m'),
+    'exit_position': _Field(lambda v, p: None if v is None else _number(
+        v, p, -MAX_LENGTH_M, MAX_LENGTH_M, unit='m'),
                             'the along-track position (m) where parts leave', None,
                             nullable=True),
     'jam_time': _Field(_num(0.0, lo_open=True, unit='s'), 'a time in s', OutcomeSpec.jam_time),
@@ -989,7 +1016,8 @@ def _orientations(value, path: str) -> tuple[tuple[str, float], ...]:
     out = []
     for key, angle in value.items():
         sub = _join(path, str(key))
-        out.append((_string(key, sub), _number(angle, sub, unit='rad')))
+        out.append((_string(key, sub), _number(angle, sub, -MAX_ANGLE_RAD, MAX_ANGLE_RAD,
+                                               unit='rad')))
     return tuple(out)
 
 
@@ -1089,6 +1117,12 @@ def parse_scene(data: Mapping, source: str = '<dict>',
             raise _Invalid('track', f'no body named {track!r}{_suggest(track, names)}; '
                                     f'expected one of: {", ".join(names)}')
         name = _default_name(source) if f['name'] is _AUTO else f['name']
+        exit_at = None if f['outcomes'] is None else f['outcomes'].exit_position
+        for k, sink in enumerate(f['sinks'] or ()):
+            if sink.past_exit and exit_at is None:
+                raise _Invalid(f'sinks[{k}].past_exit', 'the scene has no exit: give '
+                                                        'outcomes.exit_position (m along the '
+                                                        'track)')
         templates = {b.name for b in bodies if b.type == 'dynamic'}
         for k, src in enumerate(f['sources'] or ()):
             if src.template not in templates:
