@@ -331,13 +331,17 @@ def test_same_log_same_recording_id(ten_log, ten_rrd, tmp_path):
     assert ids[0] == ids[1]
 
 
-def test_truncated_log_converts_what_it_holds(chunked_log, tmp_path):
+def test_truncated_log_converts_what_it_holds(chunked_log, tmp_path, caplog):
     data = chunked_log.read_bytes()
     cut = tmp_path / 'cut.mcap'
     cut.write_bytes(data[:len(data) // 2])
     full = replay(chunked_log, tmp_path / 'full.rrd', spawn=False)
+    assert not [r for r in caplog.records if 'without its footer' in r.getMessage()]
     part = replay(cut, spawn=False)
     assert part == tmp_path / 'cut.rrd'
+    # the user is told the log is cut short, and how much of it is replayed
+    said = [r.getMessage() for r in caplog.records if 'without its footer' in r.getMessage()]
+    assert len(said) == 1 and f'{cut}: the log ends without its footer' in said[0]
     n_full = len(temporal(full, '/world/parts', 'LineStrips2D:strips')[0])
     t_part, strips = temporal(part, '/world/parts', 'LineStrips2D:strips')
     # log times count from the run's wall-clock start (in the metadata, early in the file)
@@ -347,6 +351,7 @@ def test_truncated_log_converts_what_it_holds(chunked_log, tmp_path):
     readable = [t - origin for topic, t, _ in read_messages(cut) if topic == TOPIC_PART_POSES]
     assert n_full == 40
     assert 0 < len(strips) < n_full
+    assert f'replaying the {len(strips)} frames up to its last whole record' in said[0]
     assert t_part.tolist() == readable
     assert RrdReader(str(part)).recordings()[0].recording_id != \
         RrdReader(str(full)).recordings()[0].recording_id

@@ -65,8 +65,16 @@ def table(out: Path) -> list[list[str]]:
      'parameters.solver.time_step', 'a range is {range: [lo, hi], count: n}'),
     ({'repeats': 0}, 'repeats', 'whole number from 1'),
     ({'objective': {'metric': 'jams'}}, 'objective', 'one of the metrics'),
+    ({'metrics': ['conveying_speed_mps', 'fraction:sideways']}, 'metrics[1]',
+     "the scene names no orientation 'sideways'; its outcomes.orientations: none"),
+    ({'perturb': {'position_m': -1e-4}}, 'perturb.position_m', 'a spread >= 0, got -0.0001'),
+    ({'perturb': {'drive_phase': 'yes please'}}, 'perturb.drive_phase', 'true or false'),
+    ({'parameters': {'bodies[track].vibration.amplitude': {
+        'sample': 'random', 'low': 5e-4, 'high': 1e-4, 'count': 2}}},
+     'parameters.bodies[track].vibration.amplitude', 'low (0.0005) must be below high'),
 ], ids=['unknown key', 'duration', 'metric', 'body name', 'value', 'not a parameter',
-        'range', 'repeats', 'objective'])
+        'range', 'repeats', 'objective', 'orientation', 'negative spread', 'phase flag',
+        'empty sample'])
 def test_a_bad_study_file_is_one_line_naming_the_key(change, path, fragment):
     with pytest.raises(StudyError) as err:
         parse_study({**SMALL, **change}, 'study.yaml')

@@ -395,8 +395,19 @@ def _messages(path: Path) -> Iterator[tuple[str, int, object]]:
         log.warning('%s', warning.message)
 
 
+def _finalized(path: Path) -> bool:
+    """Whether the log ends in the MCAP magic after its footer (its writer finished it)."""
+    with open(path, 'rb') as stream:
+        size = os.fstat(stream.fileno()).st_size
+        if size < 2 * len(_MCAP_MAGIC):
+            return False
+        stream.seek(size - len(_MCAP_MAGIC))
+        return stream.read() == _MCAP_MAGIC
+
+
 def _read_log(path: Path) -> _Log:
     _check_mcap(path)
+    finished = _finalized(path)
     records = _read_metadata(path)
     metadata = records.get('feeder_sim', {})
     # log times count simulated time from this wall-clock instant (0: from the epoch)
@@ -422,6 +433,9 @@ def _read_log(path: Path) -> _Log:
             track.append((t_ns, *message))
         elif len(message) >= 2:
             vibration.append((t_ns, message[:2]))
+    if not finished:
+        log.warning('%s: the log ends without its footer (its writer stopped before finishing '
+                    'it); replaying the %d frames up to its last whole record', path, len(poses))
     # Stable sorts by time: files are in time order unless chunks were written out of order.
     poses.sort(key=lambda m: m[0])
     contacts.sort(key=lambda m: m[0])

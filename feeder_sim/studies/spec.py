@@ -169,9 +169,11 @@ def _parameter(name: str, value: Any, path: str, source: str) -> Parameter:
                                                                    'count'}:
             raise StudyError('a sample is {sample: random|lhs, low: lo, high: hi, count: n}',
                              path, source)
-        return Parameter(name, sample=value['sample'], count=count,
-                         low=_number(value.get('low'), f'{path}.low', source),
-                         high=_number(value.get('high'), f'{path}.high', source))
+        low = _number(value.get('low'), f'{path}.low', source)
+        high = _number(value.get('high'), f'{path}.high', source)
+        if not low < high:
+            raise StudyError(f'low ({low:g}) must be below high ({high:g})', path, source)
+        return Parameter(name, sample=value['sample'], count=count, low=low, high=high)
     raise StudyError('expected a list of values, {range: ...} or {sample: ...}', path, source)
 
 
@@ -298,8 +300,13 @@ def parse_study(data: Any, source: str = '<study>', study_path: Path | None = No
                                                           'drive_phase'}:
         raise StudyError('expected {position_m: m, angle_rad: rad, drive_phase: true|false}',
                          'perturb', source)
-    perturb = {k: (float(bool(v)) if k == 'drive_phase'
-                   else _number(v, f'perturb.{k}', source)) for k, v in perturb.items()}
+    for k, v in perturb.items():
+        if k == 'drive_phase' and not isinstance(v, bool):
+            raise StudyError(f'expected true or false, got {v!r}', 'perturb.drive_phase', source)
+        if k != 'drive_phase' and not (_is_number(v) and v >= 0):
+            raise StudyError(f'expected a spread >= 0, got {v!r}', f'perturb.{k}', source)
+    perturb = {k: (float(v) if k == 'drive_phase' else _number(v, f'perturb.{k}', source))
+               for k, v in perturb.items()}
     record = data.get('record', 'none')
     if record not in ('none', 'all', 'jammed'):
         raise StudyError(f"expected none, all or jammed, got {record!r}", 'record', source)
@@ -337,7 +344,23 @@ def parse_study(data: Any, source: str = '<study>', study_path: Path | None = No
         raise StudyError(f'{n} trials; a study may have at most {MAX_TRIALS}', 'parameters',
                          source)
     check_designs(spec)
+    check_metrics(spec)
     return spec
+
+
+def check_metrics(spec: StudySpec) -> None:
+    """An orientation a metric names (``fraction:`` / ``rest:``) must be one the scene's
+    outcomes name: otherwise every trial would fail."""
+    base, source = base_scene(spec)
+    data, values = scene_for(spec, base, spec.designs()[0])
+    scene = parse_scene(data, source, values)
+    names = sorted(name for name, _ in scene.outcomes.orientations)
+    for k, metric in enumerate(spec.metrics):
+        orientation = metric.partition(':')[2]
+        if orientation and orientation not in names:
+            raise StudyError(f'the scene names no orientation {orientation!r}; its '
+                             f'outcomes.orientations: {", ".join(names) or "none"}',
+                             f'metrics[{k}]', spec.source)
 
 
 def base_scene(spec: StudySpec) -> tuple[dict, str]:
