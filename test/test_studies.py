@@ -4,6 +4,7 @@ their own processes."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -109,6 +110,28 @@ def test_a_study_file_takes_yaml_12_numbers(tmp_path):
     assert spec.duration_s == 0.2 and spec.parameters[0].values == (2e-4,)
 
 
+def test_a_sampled_parameter_is_checked_at_the_ends_of_its_interval(monkeypatch):
+    from feeder_sim.studies import spec as spec_module
+    calls = []
+    parse = spec_module.parse_scene
+
+    def counted(*args, **kw):
+        calls.append(args)
+        return parse(*args, **kw)
+
+    monkeypatch.setattr(spec_module, 'parse_scene', counted)
+    sampled = {'bodies[track].vibration.amplitude': {'sample': 'random', 'low': 1e-4,
+                                                     'high': 5e-4, 'count': 20_000}}
+    spec = parse_study({**SMALL, 'repeats': 1, 'parameters': sampled})
+    assert len(spec.designs()) == 20_000
+    assert len(calls) <= 4             # its two ends (and the metrics' check), not 20 000 draws
+    sampled['bodies[track].vibration.amplitude']['high'] = 0.5
+    with pytest.raises(StudyError) as err:
+        parse_study({**SMALL, 'repeats': 1, 'parameters': sampled})
+    assert err.value.path == 'parameters.bodies[track].vibration.amplitude'
+    assert err.value.message.startswith('0.5 gives an invalid scene')
+
+
 def test_designs_grid_and_latin_hypercube():
     spec = parse_study(SMALL)
     designs = spec.designs()
@@ -210,8 +233,9 @@ def test_a_study_resumes_what_is_missing(tmp_path):
 
 def test_a_failing_trial_is_recorded_and_the_study_goes_on(tmp_path):
     # the track scene names no orientations: that metric fails every trial, with its reason
-    spec = parse_study({**SMALL, 'repeats': 1, 'metrics': ['conveying_speed_mps',
-                                                           'fraction:open_end_up']})
+    # (parse_study refuses it; a spec edited past the check must not stop the study)
+    spec = dataclasses.replace(parse_study({**SMALL, 'repeats': 1}), metrics=(
+        'conveying_speed_mps', 'fraction:open_end_up'))
     summary = run_study(spec, tmp_path / 'out', workers=2, plots=False)
     assert summary['failed'] == summary['trials'] == 4
     rows = [json.loads(p.read_text()) for p in (tmp_path / 'out' / 'trials').glob('*.json')]
