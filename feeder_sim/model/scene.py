@@ -901,20 +901,23 @@ def _whole(value, path: str, lo: int, hi: int) -> int:
 _BODY_NAME = re.compile(r'[A-Za-z0-9_][A-Za-z0-9_-]*\Z')
 
 
-def _body_name(value, path: str) -> str:
-    name = _string(value, path)
-    if not _BODY_NAME.match(name):
-        raise _Invalid(path, f'{name!r} is not a body name: use letters, digits, _ and - (it '
-                             'names a ROS frame and a key path such as bodies[name].mass)')
-    return name
+def _name_matching(pattern: re.Pattern, refusal: str):
+    """A checker of names that ``pattern`` matches, refusing others with ``refusal``."""
+    def check(value, path: str) -> str:
+        name = _string(value, path)
+        if not pattern.match(name):
+            raise _Invalid(path, f'{name!r} {refusal}')
+        return name
+    return check
 
 
-def _sensor_name(value, path: str) -> str:
-    name = _string(value, path)
-    if not _IDENTIFIER.match(name):
-        raise _Invalid(path, f'{name!r} is not a name a ROS topic can carry; use letters, '
-                             'digits and _, not starting with a digit')
-    return name
+_body_name = _name_matching(_BODY_NAME, 'is not a body name: use letters, digits, _ and - (it '
+                                        'names a ROS frame and a key path such as '
+                                        'bodies[name].mass)')
+
+_IDENTIFIER = re.compile(r'[A-Za-z_][A-Za-z0-9_]*\Z')
+_sensor_name = _name_matching(_IDENTIFIER, 'is not a name a ROS topic can carry; use letters, '
+                                           'digits and _, not starting with a digit')
 
 
 def _sensor_kind(value, path: str) -> str:
@@ -1045,7 +1048,6 @@ _PARAMETER = {
     'max': _Field(lambda v, p: _number(v, p), 'the largest value allowed', None),
     'description': _Field(_string, 'a text', ''),
 }
-_IDENTIFIER = re.compile(r'[A-Za-z_][A-Za-z0-9_]*\Z')
 
 
 def _parameters(value, given: Mapping[str, float]) -> dict[str, float]:
