@@ -228,6 +228,31 @@ def test_collinear_vertices_are_dropped_from_pieces():
     np.testing.assert_array_equal(box.pieces[0], [[0, 0], [0.02, 0], [0.02, 0.01], [0, 0.01]])
 
 
+def test_an_outline_is_checked_once_however_many_bodies_have_it(monkeypatch):
+    # a bowl's load is many parts of one shape: its geometry is checked and decomposed once,
+    # and a bad one is still reported at each body's own key
+    calls = []
+    simple = geometry.is_simple
+    monkeypatch.setattr(geometry, 'is_simple', lambda v: calls.append(1) or simple(v))
+    cup = [[0, 0], [0.021, 0], [0.021, 0.013], [0.019, 0.013], [0.019, 0.002],
+           [0.002, 0.002], [0.002, 0.013], [0, 0.013]]
+    data = yaml.safe_load(FULL)
+    part = data['bodies'][1]
+    data['bodies'][1:] = [{**part, 'name': f'cup_{k}', 'polygon': cup,
+                           'pose': [-0.4 + 0.03 * k, 0.1, 0.0]} for k in range(30)]
+    scene = parse_scene(data)
+    assert len(calls) <= 2 * 2          # two outlines (track, cup): the check, the decomposition
+    assert all(len(b.pieces) == 3 for b in scene.bodies[1:])
+    np.testing.assert_array_equal(scene.bodies[5].pieces[1], scene.bodies[20].pieces[1])
+    for k in (3, 17):
+        bad = copy.deepcopy(data)
+        bad['bodies'][k]['polygon'] = cup[::-1]      # clockwise, seen before at another key
+        with pytest.raises(SceneError) as err:
+            parse_scene(bad)
+        assert err.value.path == f'bodies[{k}].polygon'
+        assert 'counter-clockwise' in err.value.message
+
+
 def test_arrays_are_read_only(tmp_path):
     scene = load_scene(write(tmp_path, CUPS))
     arrays = [scene.gravity]

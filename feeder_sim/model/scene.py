@@ -18,6 +18,7 @@ from collections.abc import Callable, Mapping
 from contextvars import ContextVar
 from dataclasses import dataclass, field, fields, replace
 import difflib
+import functools
 import math
 from numbers import Real
 import os
@@ -558,17 +559,43 @@ def _vertices(value, path: str) -> np.ndarray:
 
 
 def _orientation(v: np.ndarray, path: str, noun: str) -> None:
+    problem = _outline_problem(_outline_key(v), noun)
+    if problem is not None:
+        raise _Invalid(path, problem)
+
+
+def _outline_key(v: np.ndarray) -> bytes:
+    return np.ascontiguousarray(v, dtype=float).tobytes()
+
+
+# The geometry of an outline is checked and decomposed once per distinct outline: a scene of
+# a thousand identical parts took 2 ms per part doing it again for each.
+@functools.lru_cache(maxsize=1024)
+def _outline_problem(key: bytes, noun: str) -> str | None:
+    """What is wrong with the outline whose float64 (x, y) vertices are ``key``, or None."""
+    v = np.frombuffer(key).reshape(-1, 2)
     extent = float(np.max(v.max(axis=0) - v.min(axis=0)))
     if extent < MIN_OUTLINE_M:
-        raise _Invalid(path, f'{noun} is {extent:.3g} m across; outlines must span at least '
-                             f'{MIN_OUTLINE_M:g} m (coordinates are in metres)')
+        return (f'{noun} is {extent:.3g} m across; outlines must span at least '
+                f'{MIN_OUTLINE_M:g} m (coordinates are in metres)')
     ok, reason = geometry.is_simple(v)
     if not ok:
-        raise _Invalid(path, f'{noun} is {reason}; {_SIMPLE_HINT}')
+        return f'{noun} is {reason}; {_SIMPLE_HINT}'
     area = geometry.polygon_area(v)
     if area < 0:
-        raise _Invalid(path, f'{noun} vertices must be counter-clockwise; reverse the list '
-                             f'(signed area {area:.6g} m^2)')
+        return (f'{noun} vertices must be counter-clockwise; reverse the list (signed area '
+                f'{area:.6g} m^2)')
+    return None
+
+
+@functools.lru_cache(maxsize=1024)
+def _decomposed(key: bytes) -> tuple[tuple[np.ndarray, ...], tuple[float, ...]]:
+    """The convex pieces of the simple outline ``key`` (see ``_outline_problem``), read-only,
+    and the width of each."""
+    pieces = tuple(geometry.convex_decomposition(np.frombuffer(key).reshape(-1, 2)))
+    for piece in pieces:
+        piece.flags.writeable = False
+    return pieces, tuple(geometry.min_width(piece) for piece in pieces)
 
 
 def _polygon(value, path: str) -> np.ndarray:
@@ -696,11 +723,12 @@ def _body(value, path: str) -> BodySpec:
                        'missing the shape; add `polygon: [[x, y], ...]` (a simple '
                        'counter-clockwise outline, m) or `polygons:` (a list of convex pieces)')
     if outline is not None:
-        outlines, convex = (outline,), tuple(geometry.convex_decomposition(outline))
+        outlines = (outline,)
+        convex, widths = _decomposed(_outline_key(outline))
     else:
         outlines, convex = pieces, tuple(geometry.drop_collinear(p) for p in pieces)
-    for k, piece in enumerate(convex):
-        width = geometry.min_width(piece)
+        widths = tuple(geometry.min_width(p) for p in convex)
+    for k, width in enumerate(widths):
         if width < MIN_PIECE_WIDTH_M:
             where = (_join(path, 'polygon') if outline is not None
                      else f"{_join(path, 'polygons')}[{k}]")
