@@ -237,10 +237,17 @@ def _stability(args: argparse.Namespace) -> int:
     return 0 if result['passed'] else 1
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with its errors on one line (it prints the whole usage before them)."""
+
+    def error(self, message: str):
+        self.exit(2, f'{self.prog}: error: {message} (see {self.prog} -h)\n')
+
+
 def build_parser() -> argparse.ArgumentParser:
     from feeder_sim.model.scene import METHODS
 
-    parser = argparse.ArgumentParser(prog='feeder-sim', description=__doc__)
+    parser = _Parser(prog='feeder-sim', description=__doc__)
     parser.add_argument('--version', action='version', version=f'feeder_sim {__version__}')
     parser.add_argument('-q', '--quiet', action='store_true', help='no progress lines')
     sub = parser.add_subparsers(dest='verb', required=True)

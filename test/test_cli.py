@@ -104,6 +104,11 @@ bodies:
      '--plot {tmp}/p.notanimage: expected a file name ending in one of .'),
     (['run', 'track_one_box', '--duration', '1', '--record', '{tmp}/f/x.mcap'],
      '--record {tmp}/f/x.mcap: {tmp}/f is a file, not a directory'),
+    # argparse's own errors, without the usage block it prints before them
+    (['run', 'track_one_box', '--duration', 'abc'],
+     "feeder-sim run: error: argument --duration: invalid float value: 'abc' "
+     '(see feeder-sim run -h)'),
+    (['frobnicate'], "argument verb: invalid choice: 'frobnicate'"),
 ])
 def test_bad_input_is_one_clear_line(args, message, tmp_path):
     (tmp_path / 'f').write_text('')

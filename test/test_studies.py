@@ -264,6 +264,18 @@ def test_a_study_killed_midway_resumes_without_recomputing(tmp_path):
     assert not {r['key'] for r in computed} & set(done)
 
 
+def test_a_scheduler_that_does_not_answer_is_one_line(tmp_path):
+    study = study_file(tmp_path, SMALL)
+    proc = subprocess.run([sys.executable, '-m', 'feeder_sim.cli', 'study', str(study), '--out',
+                           str(tmp_path / 'out'), '--scheduler', 'tcp://127.0.0.1:1'],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and 'Traceback' not in proc.stderr, proc.stderr
+    assert lines[0].startswith('feeder-sim: error: --scheduler tcp://127.0.0.1:1: no Dask '
+                               'scheduler answered within 10 s')
+
+
 def test_a_scheduler_and_a_worker_started_as_processes(tmp_path):
     scheduler_file = tmp_path / 'scheduler.json'
     dask = [sys.executable, '-m', 'distributed.cli']

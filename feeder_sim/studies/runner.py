@@ -75,6 +75,10 @@ def _warm_worker(spec: StudySpec) -> None:
     sim.advance_by(min(spec.duration_s, 0.01))
 
 
+# How long a study waits for the scheduler it is given to answer (s).
+SCHEDULER_WAIT_S = 10
+
+
 def make_client(scheduler: str | None, workers: int | None):
     """A Dask client: on the scheduler at ``scheduler``, or on a LocalCluster of ``workers``
     single-threaded processes (default: one per core). The physics holds the GIL, so a trial
@@ -83,7 +87,13 @@ def make_client(scheduler: str | None, workers: int | None):
     # the cluster's own chatter (workers starting, connections) is not the study's progress
     logging.getLogger('distributed').setLevel(logging.WARNING)
     if scheduler:
-        return Client(scheduler, timeout='30s'), None
+        try:
+            return Client(scheduler, timeout=f'{SCHEDULER_WAIT_S}s'), None
+        except (OSError, TimeoutError) as err:
+            reason = str(err).splitlines()[0] if str(err) else type(err).__name__
+            raise OSError(f'--scheduler {scheduler}: no Dask scheduler answered within '
+                          f'{SCHEDULER_WAIT_S} s ({reason}); start one there (dask '
+                          'scheduler) or leave --scheduler out for a local cluster') from None
     n = workers or os.cpu_count() or 1
     cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                            dashboard_address=':0', silence_logs=logging.ERROR)
