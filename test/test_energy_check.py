@@ -111,7 +111,7 @@ def test_cli_runs_with_the_check_and_refuses_a_bad_tolerance(tmp_path):
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode != 0
     lines = [x for x in bad.stderr.splitlines() if x.strip()]
-    assert len(lines) == 1 and 'energy check tolerance' in lines[0], bad.stderr
+    assert len(lines) == 1 and 'check_energy must be a tolerance >= 0' in lines[0], bad.stderr
 
 
 def test_time_steppings_rise_while_tumbling_is_first_order_in_the_step():

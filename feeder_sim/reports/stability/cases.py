@@ -779,7 +779,7 @@ def _pile_bodies(p: Mapping[str, Any]) -> list[dict]:
     half = 0.5 * _PILE_WIDTH
     bodies = [ground(mu=0.5, half_length=half + 0.05)]
     for side in (-1, 1):
-        bodies.append({'name': f'wall_{side:+d}', 'type': 'static',
+        bodies.append({'name': f'wall_{"left" if side < 0 else "right"}', 'type': 'static',
                        'polygon': box(0.005, 0.25), 'pose': [side * (half + 0.005), 0.25, 0.0],
                        'mu_static': 0.5, 'mu_dynamic': 0.5})
     rng = np.random.default_rng(1)
