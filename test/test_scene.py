@@ -618,6 +618,17 @@ def test_aliases_that_share_a_material_are_read(tmp_path):
     assert load_scene(write(tmp_path, text)).bodies[0].mu_static == 0.5
 
 
+def test_the_fast_parser_reads_every_shipped_scene_as_the_python_one(tmp_path):
+    # libyaml reads the files; a file it refuses is read again by PyYAML for its messages
+    from feeder_sim.model import scene as scene_module
+    for name in shipped_scenes():
+        text = (scene_dirs()[0] / f'{name}.yaml').read_text()
+        fast = yaml.load(text, Loader=scene_module._FastSceneLoader)
+        assert fast == yaml.load(text, Loader=scene_module._SceneLoader), name
+    assert yaml.load('x: 1e-3\ny: 1.0e3\n', Loader=scene_module._FastSceneLoader) == {
+        'x': 1e-3, 'y': 1e3}
+
+
 def test_nan_in_file_names_the_key(tmp_path):
     path = write(tmp_path, FULL.replace('restitution: 0.0\n', 'restitution: .NaN\n', 1))
     with pytest.raises(SceneError) as info:
