@@ -622,7 +622,7 @@ def test_the_fast_parser_reads_every_shipped_scene_as_the_python_one(tmp_path):
     # libyaml reads the files; a file it refuses is read again by PyYAML for its messages
     from feeder_sim.model import scene as scene_module
     for name in shipped_scenes():
-        text = (scene_dirs()[0] / f'{name}.yaml').read_text()
+        text = scene_module._find(name).read_text()
         fast = yaml.load(text, Loader=scene_module._FastSceneLoader)
         assert fast == yaml.load(text, Loader=scene_module._SceneLoader), name
     assert yaml.load('x: 1e-3\ny: 1.0e3\n', Loader=scene_module._FastSceneLoader) == {
