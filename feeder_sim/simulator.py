@@ -32,6 +32,7 @@ from feeder_sim.model.scene import (
     SceneError,
     within_bounds,
 )
+from feeder_sim.model.vibration import check_command
 from feeder_sim.model.world import State, World
 from feeder_sim.stepping import StepContacts, STEPPERS
 
@@ -385,6 +386,10 @@ class Simulator:
             raise ValueError(f't_end {t_end:g} s is more than {MAX_STEPS_PER_RUN:.0e} steps of '
                              f'{h:g} s ahead of t = {self.t:g} s; go on by at most '
                              f'{MAX_STEPS_PER_RUN * h:g} s per call')
+        self._advance_to(t_end)
+
+    def _advance_to(self, t_end: float) -> None:
+        """advance_to once t_end and the state are known to be fit for it."""
         if self.feed is None:
             self._step_to(t_end)
         elif t_end > self.t:
@@ -454,7 +459,7 @@ class Simulator:
         """Integrate ``duration_s`` (s, > 0) of simulated time from now on."""
         self._check_state()
         self.check_duration(duration_s)
-        self.advance_to(self.t + duration_s)
+        self._advance_to(self.t + duration_s)
 
     # the first name of advance_to, kept for scripts that use it
     advance = advance_to
@@ -476,9 +481,7 @@ class Simulator:
 
         A command that changes nothing (a controller republishing its setpoint) leaves the
         motion and the stepper as they are."""
-        if not (is_number(amplitude_m) and is_number(frequency_hz)):
-            raise ValueError('amplitude_m and frequency_hz must be finite numbers >= 0, got '
-                             f'{amplitude_m!r}, {frequency_hz!r}')
+        check_command(amplitude_m, frequency_hz)
         drives = [self.world.drives[i] for i in self.world.driven]
         if all(d.amplitude_m == amplitude_m and d.frequency_hz == frequency_hz for d in drives):
             return

@@ -52,6 +52,17 @@ def drive_value_problem(name: str, value: float) -> str | None:
     return None
 
 
+def check_command(amplitude_m: float, frequency_hz: float) -> None:
+    """Refuse (ValueError, one line) a drive command no drive takes."""
+    if not all(is_number(x) and math.isfinite(x) and x >= 0
+               for x in (amplitude_m, frequency_hz)):
+        raise ValueError('amplitude_m and frequency_hz must be finite numbers >= 0, got '
+                         f'{amplitude_m!r}, {frequency_hz!r}')
+    for name, value in (('amplitude', amplitude_m), ('frequency', frequency_hz)):
+        if (problem := drive_value_problem(name, value)) is not None:
+            raise ValueError(problem)
+
+
 @dataclass(frozen=True)
 class _Segment:
     start_s: float
@@ -111,13 +122,7 @@ class Drive:
 
     def command(self, t: float, amplitude_m: float, frequency_hz: float) -> None:
         """Switch to a new amplitude and frequency from time ``t`` on, keeping d(t) continuous."""
-        if not all(is_number(x) and math.isfinite(x) and x >= 0
-                   for x in (amplitude_m, frequency_hz)):
-            raise ValueError('amplitude_m and frequency_hz must be finite numbers >= 0, got '
-                             f'{amplitude_m!r}, {frequency_hz!r}')
-        for name, value in (('amplitude', amplitude_m), ('frequency', frequency_hz)):
-            if (problem := drive_value_problem(name, value)) is not None:
-                raise ValueError(problem)
+        check_command(amplitude_m, frequency_hz)
         d, v, _ = self.motion(t)
         old = self.segment(t)
         old_phase = old.phase_rad + TWO_PI * old.frequency_hz * (t - old.start_s)

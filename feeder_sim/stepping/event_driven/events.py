@@ -96,9 +96,9 @@ class CandidateWatch:
         """Twice the farthest (m) a dynamic body's corners get within ``duration`` (s) at
         their speed now under gravity: a margin no body outruns in that time unless a
         contact or a drive speeds it up."""
-        dyn, s = self.setup.dyn, self.setup
-        speed = float(np.max(np.hypot(state.velocity[dyn, 0], state.velocity[dyn, 1])
-                             + np.abs(state.omega[dyn]) * s.radius[dyn], initial=0.0))
+        s = self.setup
+        speed = float(np.max(np.hypot(state.velocity[s.dyn, 0], state.velocity[s.dyn, 1])
+                             + np.abs(state.omega[s.dyn]) * s.radius[s.dyn], initial=0.0))
         return 2.0 * duration * (speed + 0.5 * s.g * duration)
 
     def ensure(self, state: State) -> Candidates:

@@ -268,10 +268,10 @@ class ContactModes:
             keep[idx], friction[idx], sigma[idx] = kern.mode_rows(
                 f, a_rel, fr, sub.mu_static, sig, setup.force_scale * 1e-12, 1e-9 * setup.g,
                 sub.contacts.body_a, sub.contacts.body_b, sub.contacts.normal)
-            if kern.slip_left(friction[idx][keep[idx]], vt[keep[idx]], setup.slip_tol):
-                self.close_slip(sub.subset(np.flatnonzero(keep[idx])), state, bodies,
-                                vn[keep[idx]], vt[keep[idx]], friction[idx][keep[idx]],
-                                pending)
+            held = keep[idx]
+            if kern.slip_left(friction[idx][held], vt[held], setup.slip_tol):
+                self.close_slip(sub.subset(np.flatnonzero(held)), state, bodies, vn[held],
+                                vt[held], friction[idx][held], pending)
         sel = np.flatnonzero(keep)
         active = cs if len(sel) == k else cs.subset(sel)
         return ModeChoice(active.contacts, friction[sel], sigma[sel], groups(active),
