@@ -145,9 +145,10 @@ def test_thrown_part_bounces_off_a_thin_wall_while_another_body_rocks():
 FALL_M, DROP_MPS = 30.0, 50.0
 
 
+@pytest.mark.parametrize('time_step_s', [1e-3, 1e-2], ids=['default', 'coarse'])
 @pytest.mark.parametrize('chained', [True, False])
 def test_part_falling_fast_lands_where_free_fall_says_with_a_detection_per_frame(
-        monkeypatch, chained):
+        monkeypatch, chained, time_step_s):
     # Thrown down at 50 m/s towards a floor 30 m below, a 10 mm box covers 50-80 mm per 1 ms
     # step, more than its candidates' margin (a few body sizes). It must fly the parabola to
     # the floor and stay there (e = 0) with its candidate collisions detected again about
@@ -157,7 +158,7 @@ def test_part_falling_fast_lands_where_free_fall_says_with_a_detection_per_frame
     part = {'name': 'part', 'type': 'dynamic', 'polygon': box(HALF_M, HALF_M),
             'mass': MASS_KG, 'pose': [0.0, 0.0, 0.0], 'velocity': [0.0, -DROP_MPS, 0.0],
             'mu_static': 0.5, 'mu_dynamic': 0.5, 'restitution': 0.0}
-    sim = Simulator(build(scene_dict('fall', [floor, part], 'event_driven', 1e-3)),
+    sim = Simulator(build(scene_dict('fall', [floor, part], 'event_driven', time_step_s)),
                     settings=EventSettings(chained=chained))
     detections = []
     find = CandidateWatch.find

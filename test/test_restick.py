@@ -71,16 +71,17 @@ def test_a_block_that_stops_on_a_slope_stays(method, dt, scale, v0):
     assert sim.stats.fallbacks == 0
 
 
+@pytest.mark.parametrize('dt', [1e-3, 1e-2], ids=['default', 'coarse'])
 @pytest.mark.parametrize('chained', [True, False])
 @pytest.mark.parametrize('theta', [0.0, THETA], ids=['flat', 'slope'])
-def test_event_driven_stops_a_slip_where_it_ends(chained, theta):
+def test_event_driven_stops_a_slip_where_it_ends(chained, theta, dt):
     """The slip stop is located where its event function has passed the event threshold: the
     contact then sticks with the slip reversed by up to that threshold times the speed scale
     (~3e-10 m/s here), which a sticking mode keeps. The mode choice closes it by an impulse
     (counted, recorded), on the chain's path and on the general one alike: the box stops at
     v0^2 / (2 a) and then does not move by a picometre in 5 s."""
     v0 = 0.5
-    sim = launched('event_driven', v0, 1e-2, theta, EventSettings(chained=chained))
+    sim = launched('event_driven', v0, dt, theta, EventSettings(chained=chained))
     decel = G * (math.sin(theta) + MU_D * math.cos(theta))
     s0 = along(sim, theta)
     sim.advance(v0 / decel + 0.1)
