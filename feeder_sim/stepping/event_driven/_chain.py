@@ -408,8 +408,8 @@ def _impacts(c, pos, ang, vel, om, world, tols, stats, rec, rows):
 def _mode_at_event(t, c, pos, ang, vel, om, model, world, tols, acc, stats, rec, rows):
     """The next mode over the contacts ``c`` (``ContactModes.choose``, its slip closure
     recorded from row ``rows`` of ``rec``): ``(ok, contacts kept, friction, sigma, normal,
-    r_a, r_b, rows)``; not ok where the general path must decide (a contact approaches, the
-    LCP misses)."""
+    r_a, r_b, their LCP normal forces, rows)``; not ok where the general path must decide (a
+    contact approaches, the LCP misses)."""
     kind, index, drives = model.kind, model.index, model.drives
     dynamic, inv_mass, inv_inertia, _, gravity = world
     slip_tol, lcp_tol = tols.slip_tol_mps, tols.lcp_tol
@@ -421,7 +421,7 @@ def _mode_at_event(t, c, pos, ang, vel, om, model, world, tols, acc, stats, rec,
     r_a, r_b = _arms(pos, c, point)
     v_n, v_t = kern.relative_velocity(normal, r_a, r_b, c.body_a, c.body_b, vel, om)
     fail = (False, c, np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 2)),
-            np.zeros((0, 2)), np.zeros((0, 2)), rows)
+            np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), rows)
     zeno = kern.zeno_speed(normal, c.body_a, c.body_b, dynamic, gravity, tols.touch_m)
     for i in range(k):
         # an approach, or a slow normal motion ContactModes.settle closes (Zeno)
@@ -458,6 +458,7 @@ def _mode_at_event(t, c, pos, ang, vel, om, model, world, tols, acc, stats, rec,
     keep, friction, sigma = kern.mode_rows(f, a_rel, fr, mu_s, sigma, force_tol, acc_tol, a, b,
                                            normal)
     kept = np.flatnonzero(keep)
+    force_n = f[kept]
     c = _take(c, kept)
     friction, sigma, normal, r_a, r_b = (friction[kept], sigma[kept], normal[kept], r_a[kept],
                                          r_b[kept])
@@ -476,7 +477,7 @@ def _mode_at_event(t, c, pos, ang, vel, om, model, world, tols, acc, stats, rec,
             om[i] += dv[3 * q + 2]
         rows = _record(c, point[rest][kept], normal, p, rec, rows)
         stats[SLIP_CLOSURES] += 1
-    return True, c, friction, sigma, normal, r_a, r_b, rows
+    return True, c, friction, sigma, normal, r_a, r_b, force_n, rows
 
 
 @inner
@@ -593,11 +594,16 @@ def follow(t0, t_stop, h, state, model, world, held, mode, near, geometry, mater
             break
         # the general path chooses the mode again where this cannot: count its LCP only here
         before = stats.copy()
-        ok, c, friction_new, sigma_new, normal, r_a, r_b, rows = _mode_at_event(
+        ok, c, friction_new, sigma_new, normal, r_a, r_b, force_n, rows = _mode_at_event(
             t, c, pos, ang, vel, om, model, world, tols, acc, stats, record, rows)
         if ok:
             ok, phi0_new, phi1_new, f0_new, f1_new = _closed_form(
                 c, friction_new, sigma_new, normal, r_a, r_b, om, model, world, tols)
+        # a held contact the mode cannot keep (kern.leaving: a block starting to tip on one
+        # corner): the general path lets it go and holds what stays (EventDriven._hold)
+        if ok and kern.leaving(t, drives, force_n, f0_new, f1_new, tols.force_tol,
+                               threshold * scales.force).any():
+            ok = False
         if not ok:
             # (a slip closure stays: the general path finds the contacts at rest)
             closures = stats[SLIP_CLOSURES]

@@ -852,6 +852,34 @@ def mode_rows(f, a_rel, fr, mu_s, sigma, force_tol, acc_tol, body_a, body_b, nor
     return keep, friction, new_sigma
 
 
+@jit
+def leaving(t, drives, f_lcp, f0, f1, force_tol, limit):
+    """The held contacts a mode cannot keep: (k,) True where the force LCP gave the contact
+    no force (``f_lcp[i] <= force_tol``, N: it stayed only because it does not accelerate
+    away) while the mode's own normal force at t, ``f0[i] + f1[i] @ s(t)`` with ``s`` the
+    drives' accelerations, is already below ``-limit`` (N).
+
+    A normal-force event is located just past the level ``-limit`` at which it fires. At
+    that instant the LCP is degenerate for the contact (force and separating acceleration
+    both zero to first order, e.g. a block's rear corner when the platform's acceleration
+    reaches g b / h) and keeps it; the mode holding it would then start with the event
+    function below its level, which an event never sees, so the contact would press with a
+    negative force for good (a tall block sticking flat on an accelerating platform never
+    tips). It leaves instead: the force keeps falling, so that is the choice the next
+    instant's LCP makes. ``f0`` (2k,) and ``f1`` (2k, nd) are the stacked forces of the
+    phase's closed form (normal rows first); an integrated mode passes its forces at t as
+    ``f0`` and zero ``f1``. ``drives`` as in a closed-form phase (:class:`Drives`)."""
+    _, _, amp, w, phase, t_ref = drives
+    k = f_lcp.shape[0]
+    out = np.zeros(k, np.bool_)
+    for i in range(k):
+        f = f0[i]
+        for d in range(amp.shape[0]):
+            f -= f1[i, d] * amp[d] * w[d] * w[d] * math.sin(phase[d] + w[d] * (t - t_ref))
+        out[i] = f_lcp[i] <= force_tol and f < -limit
+    return out
+
+
 # A sticking contact still slipping faster than this share of the slip tolerance is stopped
 # by ``stick_closure`` (below it, the slip is the round-off of locating the event).
 SLIP_LEFT = 1e-2

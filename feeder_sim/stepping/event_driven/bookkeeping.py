@@ -33,6 +33,8 @@ GAP_SCALE_M = 1e-3   # gaps fire at -1e-12 m
 # gives it no angular acceleration beyond round-off (relative to g over its radius).
 SPIN_FRACTION = 1e-3
 ALPHA_REL = 1e-12
+# A contact force below this fraction of the force scale is taken as zero.
+FORCE_TOL_REL = 1e-12
 # Rows of contact impulses a compiled chain of phases can record; near full, it hands the next
 # event back to the general path.
 CHAIN_ROWS = 512
@@ -216,7 +218,7 @@ def make_setup(world: World, spec: SolverSpec, settings: EventSettings) -> Setup
         event_threshold=EVENT_THRESHOLD, slip_tol_mps=slip_tol, touch_m=settings.touch_m,
         lcp_tol=settings.lcp_tol, cascade_window_s=settings.cascade_window_s,
         spin_limit=SPIN_FRACTION * slip_tol, alpha_limit=ALPHA_REL * g,
-        force_tol=force_scale * 1e-12, acc_tol=1e-9 * g, near_m=1e3 * settings.touch_m,
+        force_tol=force_scale * FORCE_TOL_REL, acc_tol=1e-9 * g, near_m=1e3 * settings.touch_m,
         rest_speed_mps=settings.rest_speed_mps,
         friction_impulse=1.0 if spec.friction_impulse else 0.0)
     chain_world = chain.BodyArrays(

@@ -29,7 +29,12 @@ from feeder_sim.contact.dynamics import (
 from feeder_sim.contact.routh import routh_collision, STRONGE
 from feeder_sim.model.world import rot, State, World
 from feeder_sim.stepping.event_driven import _kernels as kern
-from feeder_sim.stepping.event_driven.bookkeeping import ContactMaterial, EventSettings, Setup
+from feeder_sim.stepping.event_driven.bookkeeping import (
+    ContactMaterial,
+    EventSettings,
+    FORCE_TOL_REL,
+    Setup,
+)
 from feeder_sim.stepping.protocol import StepContacts
 
 STICK, SLIDE = kern.STICK, kern.SLIDE
@@ -46,6 +51,15 @@ class ModeChoice:
     group: np.ndarray         # (k,) parallel-contact group id
     material: ContactMaterial
     cs: ContactSet | None     # the active contacts' system (None when there are none)
+    force_n: np.ndarray       # (k,) the force LCP's normal forces of the active contacts, N
+
+    def without(self, leave: np.ndarray) -> ModeChoice:
+        """The same choice without the contacts where ``leave`` (k,) is True."""
+        stay = np.flatnonzero(~leave)
+        cs = self.cs.subset(stay)
+        return ModeChoice(cs.contacts, self.friction[stay], self.sigma[stay], groups(cs),
+                          ContactMaterial(cs.mu_static, cs.mu_dynamic, cs.restitution), cs,
+                          self.force_n[stay])
 
 
 def with_geometry(world: World, features: Contacts, state: State) -> ContactSet:
@@ -227,7 +241,8 @@ class ContactModes:
         relative velocities."""
         if cs is None:
             return ModeChoice(Contacts.empty(), np.zeros(0, int), np.zeros(0), np.zeros(0, int),
-                              ContactMaterial(np.zeros(0), np.zeros(0), np.zeros(0)), None)
+                              ContactMaterial(np.zeros(0), np.zeros(0), np.zeros(0)), None,
+                              np.zeros(0))
         setup = self.setup
         resting = np.flatnonzero(np.abs(v_n) <= setup.slip_tol * 10)
         if len(resting) < cs.n:
@@ -236,6 +251,7 @@ class ContactModes:
         k = cs.n
         keep = np.zeros(k, bool)
         friction = np.zeros(k, np.int64)
+        force_n = np.zeros(k)
         sigma = np.sign(v_t)
         acc = self.free_acceleration(state.t)
         sliding = np.abs(v_t) > setup.slip_tol
@@ -266,8 +282,9 @@ class ContactModes:
             if not len(idx):
                 continue
             keep[idx], friction[idx], sigma[idx] = kern.mode_rows(
-                f, a_rel, fr, sub.mu_static, sig, setup.force_scale * 1e-12, 1e-9 * setup.g,
-                sub.contacts.body_a, sub.contacts.body_b, sub.contacts.normal)
+                f, a_rel, fr, sub.mu_static, sig, setup.force_scale * FORCE_TOL_REL,
+                1e-9 * setup.g, sub.contacts.body_a, sub.contacts.body_b, sub.contacts.normal)
+            force_n[idx] = f[:len(idx)]
             held = keep[idx]
             if kern.slip_left(friction[idx][held], vt[held], setup.slip_tol):
                 self.close_slip(sub.subset(np.flatnonzero(held)), state, bodies, vn[held],
@@ -276,7 +293,7 @@ class ContactModes:
         active = cs if len(sel) == k else cs.subset(sel)
         return ModeChoice(active.contacts, friction[sel], sigma[sel], groups(active),
                           ContactMaterial(active.mu_static, active.mu_dynamic,
-                                          active.restitution), active)
+                                          active.restitution), active, force_n[sel])
 
     def close_slip(self, cs: ContactSet, state: State, bodies: np.ndarray, v_n: np.ndarray,
                    v_t: np.ndarray, friction: np.ndarray, pending: list[StepContacts]) -> None:

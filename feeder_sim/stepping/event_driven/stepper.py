@@ -92,10 +92,15 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from feeder_sim.model.world import State
+from feeder_sim.stepping.event_driven import _kernels as kern
 from feeder_sim.stepping.event_driven import phases
 from feeder_sim.stepping.event_driven.bookkeeping import (
+    EVENT_THRESHOLD,
     EventSettings,
+    FORCE_TOL_REL,
     GIVE_WAY_S,
     make_setup,
     Mode,
@@ -107,6 +112,10 @@ from feeder_sim.stepping.event_driven.modes import ContactModes, held_arrays, Mo
 from feeder_sim.stepping.protocol import StepContacts, StepperBase
 
 __all__ = ['EventDriven', 'EventSettings']
+
+# ``kern.leaving``'s drives for forces given at one instant
+NO_DRIVES = kern.Drives(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0),
+                        np.zeros(0), 0.0)
 
 
 class EventDriven(StepperBase):
@@ -206,16 +215,43 @@ class EventDriven(StepperBase):
         self._hold(state, self.modes.settle(state, self._pending))
 
     def _hold(self, state: State, choice: ModeChoice) -> None:
-        """Hold a mode from ``state`` on: closed form if it has one, else integrated."""
-        held, n_events = held_arrays(self.setup, choice.features, choice.friction,
-                                     choice.sigma, choice.group, choice.material.mu_static)
-        mode = self._mode = Mode(choice.features, choice.friction, choice.sigma, choice.group,
-                                 choice.material, held, n_events)
-        mode.phase = phases.closed_form(self.world, self.setup, mode, state, choice.cs,
-                                        self.drive_models.at(state.t))
+        """Hold a mode from ``state`` on: closed form if it has one, else integrated. A
+        contact the mode cannot keep (``kern.leaving``: no LCP force, its own force already
+        past its event) leaves it first."""
+        while True:
+            held, n_events = held_arrays(self.setup, choice.features, choice.friction,
+                                         choice.sigma, choice.group, choice.material.mu_static)
+            mode = self._mode = Mode(choice.features, choice.friction, choice.sigma,
+                                     choice.group, choice.material, held, n_events)
+            model = self.drive_models.at(state.t)
+            mode.phase = phases.closed_form(self.world, self.setup, mode, state, choice.cs,
+                                            model)
+            leave = self._leaving(state, choice, mode, model)
+            if not leave.any():
+                break
+            choice = choice.without(leave)
         if mode.phase is None:
-            mode.spec = phases.compiled_rhs(self.world, self.setup, mode, state,
-                                            self.drive_models.at(state.t))
+            mode.spec = phases.compiled_rhs(self.world, self.setup, mode, state, model)
+
+    def _leaving(self, state: State, choice: ModeChoice, mode: Mode,
+                 model: phases.DriveModel | None) -> np.ndarray:
+        """(k,) the held contacts of ``mode`` that ``kern.leaving`` lets go at ``state``."""
+        setup = self.setup
+        force_tol = setup.force_scale * FORCE_TOL_REL
+        k = choice.features.n
+        if not k or choice.force_n.min() > force_tol:
+            return np.zeros(k, bool)    # every contact presses: nothing degenerate
+        ph = mode.phase
+        if ph is not None:
+            drives, f0, f1 = ph.drives, ph.f0, ph.f1
+        else:
+            # the integrated mode's forces now (the drives' terms are in them)
+            f0 = self.integrator.rhs(mode, state.t, pack(setup.dyn, state),
+                                     state.copy())[1]['f_n']
+            drives, f1 = NO_DRIVES, np.zeros((k, 0))
+        return kern.leaving(state.t, drives, choice.force_n, np.ascontiguousarray(f0, float),
+                            np.ascontiguousarray(f1, float), force_tol,
+                            EVENT_THRESHOLD * setup.force_scale)
 
     def _give_way(self, state: State, scratch: State, h: float) -> None:
         """Many events in a moment: let the mode run a step of ``h`` (s) without watching its
