@@ -146,6 +146,16 @@ def test_tip_on_accelerating_platform(method):
     assert m['tilt_end_rad'] >= 0.015
 
 
+@pytest.mark.parametrize('method', methods('tip_from_stick_slow_drive', (IB,)))
+def test_tip_from_stick_on_a_slow_drive_follows_the_pivot(method):
+    m = run('tip_from_stick_slow_drive', method)
+    if method == ED:
+        # flat 1e-6 before t*, tipping 1e-6 after it, on the rigid rotation to 1e-6
+        assert m['tilt_before_rad'] <= 1e-12
+        assert m['tilt_after_rad'] > 0.0
+        assert m['tilt_error_rel'] <= 1e-6
+
+
 @pytest.mark.parametrize('method', methods('rocking_square_e0', (IB,)))
 @pytest.mark.parametrize('e', ['0', '0.5'])
 def test_rocking_square_settles(method, e):

@@ -406,6 +406,87 @@ _register(_case(
     steps=_STEPS_1MS, duration=_TIP_T + 0.03, chunks=200, energy_tol=None))
 
 
+# The same block from a slow drive of large amplitude (0.1 m at 1.2 Hz, 0.58 g peak): 20 x
+# 60 mm, mu_s = 0.8 > b / h = 1/3, sticking flat from the start. Its trailing corner's
+# normal force reaches zero at t*, where the platform's acceleration reaches g b / h; from
+# there it pivots on its sticking leading corner. The reference is that rotation: in the
+# platform's frame, with phi the tilt and r(phi) = (-b cos phi + h sin phi, b sin phi +
+# h cos phi) the centre of mass from the corner, (4/3) (b^2 + h^2) phi'' = -(r_x F_y -
+# r_y F_x), F = (-s(t), -g) per unit mass, s the platform's acceleration (solve_ivp, rtol
+# 1e-12). Three runs: to just before and just after t* (1e-6 relative), and 50 ms past it.
+_SLOW_B, _SLOW_H, _SLOW_MU, _SLOW_A, _SLOW_F = 0.01, 0.03, 0.8, 0.1, 1.2
+_SLOW_W = 2 * math.pi * _SLOW_F
+_SLOW_T = math.asin(G * _SLOW_B / (_SLOW_H * _SLOW_A * _SLOW_W ** 2)) / _SLOW_W
+_SLOW_ONSET_REL = 1e-6
+_SLOW_WINDOW_S = 0.05
+
+
+def _slow_bodies() -> list[dict]:
+    return [{'name': 'platform', 'type': 'kinematic', 'polygon': box(1.0, 0.01),
+             'pose': [0.0, -0.01, 0.0], 'mu_static': _SLOW_MU, 'mu_dynamic': _SLOW_MU,
+             'restitution': 0.0, 'vibration': {'amplitude': _SLOW_A, 'frequency': _SLOW_F,
+                                               'angle': 0.0, 'phase': 0.0}},
+            box_part('block', _SLOW_B, _SLOW_H, (0.0, _SLOW_H, 0.0),
+                     (_SLOW_A * _SLOW_W, 0.0, 0.0), mu=_SLOW_MU)]
+
+
+def _slow_runs(method: str, _p) -> list[SceneRun]:
+    step = _STEPS_1MS[method]
+    runs = []
+    for label, end in (('before', _SLOW_T * (1 - _SLOW_ONSET_REL)),
+                       ('after', _SLOW_T * (1 + _SLOW_ONSET_REL)),
+                       ('pivot', _SLOW_T + _SLOW_WINDOW_S)):
+        chunk = end if label != 'pivot' else _chunk(end / 100, method, step)
+        runs.append(SceneRun(scene_dict('tip_from_stick_slow_drive', _slow_bodies(), method,
+                                        step), end, chunk, label))
+    return runs
+
+
+def _slow_reference(t: np.ndarray) -> np.ndarray:
+    """The tilt (rad) of the block pivoting from t* on, at the times ``t`` >= t*."""
+    from scipy.integrate import solve_ivp
+    b, h = _SLOW_B, _SLOW_H
+
+    def rhs(tk: float, y: np.ndarray) -> list[float]:
+        phi, w = y
+        fx, fy = _SLOW_A * _SLOW_W ** 2 * math.sin(_SLOW_W * tk), -G
+        rx, ry = -b * math.cos(phi) + h * math.sin(phi), b * math.sin(phi) + h * math.cos(phi)
+        return [w, -(rx * fy - ry * fx) / (4.0 / 3.0 * (b * b + h * h))]
+
+    return solve_ivp(rhs, (_SLOW_T, float(t[-1])), [0.0, 0.0], method='DOP853', t_eval=t,
+                     rtol=1e-12, atol=1e-18).y[0]
+
+
+def _slow_measure(records: list[_Record], _p) -> dict[str, float]:
+    before, after, pivot = (r.arrays() for r in records)
+    a = pivot
+    tipping = a['t'] >= _SLOW_T
+    t = a['t'][tipping]
+    error = np.abs(-a['angle'][tipping, 0] - _slow_reference(t))
+    return {'tilt_before_rad': float(abs(before['angle'][-1, 0])),
+            'tilt_after_rad': float(abs(after['angle'][-1, 0])),
+            'tilt_error_rel': float(np.max(error) / abs(_slow_reference(t)[-1]))}
+
+
+_register(StabilityCase(
+    key='tip_from_stick_slow_drive',
+    description='a 20 x 60 mm block sticking (mu = 0.8) on a platform driven 0.1 m at 1.2 Hz: '
+                f'flat until the acceleration reaches g b / h at t* = {_SLOW_T * 1e3:.3f} ms, '
+                'then pivoting on its sticking corner as the rigid rotation says, 50 ms',
+    build=_slow_runs, measure=_slow_measure,
+    criteria=(Criterion('tilt_before_rad', _steps(1e-9, 1e-12, 1e-5),
+                        meaning='tilt at t* (1 - 1e-6), rad (impulse_based: micro-collisions '
+                                'rock it)'),
+              Criterion('tilt_after_rad', _steps(0.0, 1e-300, 0.0), op='>=',
+                        meaning='tilt at t* (1 + 1e-6), rad: > 0 once the pivot has begun '
+                                '(time stepping and impulse_based locate it to a step)'),
+              Criterion('tilt_error_rel', _steps(1e-3, 1e-6, 0.05),
+                        meaning='largest |tilt - reference| over the 50 ms, of the '
+                                'reference\'s tilt at the end')),
+    duration_s=_steps(*(3 * [_SLOW_T + _SLOW_WINDOW_S])), wall_limit_s=60.0,
+    energy_tol=None))
+
+
 def _rocking_bodies(e: float) -> Callable[[Mapping[str, Any]], list[dict]]:
     def bodies(_p):
         half, tilt = 0.01, 0.2
