@@ -248,13 +248,28 @@ def sliding_off_a_ledge():
          'mu_static': 0.3, 'mu_dynamic': 0.2}], 'event_driven', 1e-3)
 
 
+def tipping_from_stick():
+    """A 10 x 60 mm block sticking (mu 0.3 > b / h = 1/6) on a platform driven 0.08 m at
+    1.5 Hz, started with its velocity: it tips on its leading corner at 24.6 ms, where its
+    trailing corner's force falls through zero (``kern.leaving``)."""
+    amplitude, freq = 0.08, 1.5
+    return scene_dict('tipping', [
+        {'name': 'platform', 'type': 'kinematic', 'polygon': box(1.0, 0.01),
+         'pose': [0.0, -0.01, 0.0], 'mu_static': 0.3, 'mu_dynamic': 0.3,
+         'vibration': {'amplitude': amplitude, 'frequency': freq, 'angle': 0.0}},
+        {'name': 'part', 'type': 'dynamic', 'polygon': box(0.005, 0.03), 'mass': MASS_KG,
+         'pose': [0.0, 0.03, 0.0], 'velocity': [2 * math.pi * freq * amplitude, 0.0, 0.0],
+         'mu_static': 0.3, 'mu_dynamic': 0.3}], 'event_driven', 1e-3)
+
+
 @pytest.mark.parametrize('scene', [
     lambda: conveying(0.3), lambda: conveying(0.8), lambda: conveying(1.5, 3.0),
     lambda: conveying(0.8, -3.0), lambda: conveying(3.0), lambda: thrown_scene(1e-2, gravity=-G),
     lambda: thrown_scene(1e-2, angle_rad=0.2, omega_radps=20.0), dropped_tilted,
-    sliding_off_a_ledge],
+    sliding_off_a_ledge, tipping_from_stick],
     ids=['sticking', 'sliding', 'hopping uphill', 'sliding downhill', 'hopping high',
-         'thrown at a wall', 'thrown spinning', 'dropped tilted', 'sliding off a ledge'])
+         'thrown at a wall', 'thrown spinning', 'dropped tilted', 'sliding off a ledge',
+         'tipping from stick'])
 def test_chained_phases_give_the_general_paths_answers(scene):
     """One body's closed-form phases chained through its events in compiled code (a box
     sticking, sliding and hopping on a track, uphill and down, thrown at a wall, landing on a
@@ -278,6 +293,40 @@ def test_chained_phases_give_the_general_paths_answers(scene):
     assert np.abs(chained.state.velocity - general.state.velocity).max() <= 1e-12
     scale = np.abs(p_general).max()
     assert np.abs(p_chained - p_general).max() <= 1e-12 * scale
+
+
+def test_compiled_leaving_matches_numpy(monkeypatch):
+    """``kern.leaving`` against its numpy transcription, on the modes held while a block
+    sticks, starts to tip and pivots (with the drive's terms) and on random forces."""
+    calls = []
+    kernel = kern.leaving
+
+    def record(*args):
+        out = kernel(*args)
+        calls.append((args, out))
+        return out
+
+    monkeypatch.setattr(kern, 'leaving', record)
+    sim = Simulator(build(tipping_from_stick()), settings=EventSettings(chained=False))
+    sim.advance(0.05)
+    monkeypatch.undo()
+    assert sim.state.angle[1] < -1e-3                     # it tipped
+    assert any(out.any() for _, out in calls)             # at the trailing corner's event
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        k, nd = int(rng.integers(1, 4)), int(rng.integers(0, 3))
+        drives = kern.Drives(np.zeros((nd, 2)), np.zeros((nd, 2)), rng.uniform(0, 1e-3, nd),
+                             rng.uniform(1, 600, nd), rng.uniform(0, 6, nd), 0.1)
+        f_lcp = rng.choice([0.0, 1e-14, 0.5], k)
+        calls.append(((rng.uniform(0, 1), drives, f_lcp, rng.normal(0, 1e-9, 2 * k),
+                       rng.normal(0, 1e-9, (2 * k, nd)), 1e-12, 1e-10), None))
+    for (t, drives, f_lcp, f0, f1, force_tol, limit), out in calls:
+        _, _, amp, w, phase, t_ref = drives
+        k = len(f_lcp)
+        s = -amp * w ** 2 * np.sin(phase + w * (t - t_ref))
+        want = (f_lcp <= force_tol) & (f0[:k] + f1[:k] @ s < -limit)
+        got = kernel(t, drives, f_lcp, f0, f1, force_tol, limit) if out is None else out
+        assert np.array_equal(got, want)
 
 
 def closed_form_reference(normal, r_a, r_b, body_a, body_b, dynamic, inv_mass, inv_inertia,

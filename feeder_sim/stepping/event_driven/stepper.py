@@ -16,6 +16,13 @@ slip -> stick/reverse  sigma v_T of a sliding contact                new force L
 sliding off an edge    edge parameter in [0, 1]                      new contact detection
 =====================  ============================================  =====================
 
+At a normal-force event the force LCP is degenerate for the contact whose force reached zero
+(no force, and a separating acceleration still below the LCP's tolerance): a tall block's
+trailing corner as the platform's acceleration passes g b / h. A contact the LCP gives no force
+and whose force in the held mode is already past its event leaves the mode
+(``kern.leaving``, :meth:`EventDriven._hold`): held, it would press with a negative force no
+event watches, and the block would never tip.
+
 Phases are followed in one of two ways:
 
 * **Closed form**, when every dynamic body either flies free (no held contact) or translates
