@@ -15,6 +15,7 @@ from dataclasses import dataclass, replace
 import logging
 import math
 import os
+import time
 
 import numpy as np
 
@@ -25,6 +26,7 @@ from feeder_sim.model.checks import is_number
 from feeder_sim.model.scene import (
     load_scene,
     MAX_ANGLE_RAD,
+    MIN_TIME_STEP_S,
     override_solver,
     parse_scene,
     Scene,
@@ -56,6 +58,85 @@ def fixed_time_step(scene: Scene) -> float:
     frequencies = [b.vibration.frequency for b in scene.bodies
                    if b.vibration is not None and b.vibration.frequency > 0.0]
     return min([FIXED_STEP_S] + [1.0 / (STEPS_PER_PERIOD * f) for f in frequencies])
+
+
+# time_step: auto (scene.py): each candidate step and its half run a pilot of the scene; the
+# conveying speed is measured over AUTO_MEASURE_PERIODS drive periods after
+# AUTO_WARMUP_PERIODS (the parts' start-up is not what the step must resolve), and at most
+# AUTO_MAX_HALVINGS halvings are tried (50 -> 12 800 steps per period)
+AUTO_WARMUP_PERIODS = 5
+AUTO_MEASURE_PERIODS = 10
+AUTO_MAX_HALVINGS = 8
+# below this share of the drive's peak speed a conveying speed counts as standing still: the
+# error is then relative to it (a part that sticks has no speed to be 1 % of)
+AUTO_SPEED_FLOOR = 0.01
+
+
+def auto_time_step(scene: Scene) -> tuple[Scene, dict]:
+    """``solver.time_step: auto``: the scene with the largest step of the halving ladder from
+    its first candidate whose conveying speed (the mean along-track speed of the parts present
+    at the start, over a short pilot) has a Richardson estimate of its relative error within
+    ``solver.tolerance`` (time_stepping is first order: error(h) ~ 2 |v(h/2) - v(h)|,
+    error(h/2) ~ |v(h/2) - v(h)|); and what the pilot found and cost."""
+    solver = scene.solver
+    drives = [b.vibration for b in scene.bodies
+              if b.vibration is not None and b.vibration.frequency > 0.0]
+    period = 1.0 / max(d.frequency for d in drives)
+    floor = AUTO_SPEED_FLOOR * max(d.amplitude * 2.0 * math.pi * d.frequency for d in drives)
+    warm, end = AUTO_WARMUP_PERIODS * period, (AUTO_WARMUP_PERIODS + AUTO_MEASURE_PERIODS) * period
+    wall0 = time.perf_counter()
+    candidates: list[dict] = []
+
+    def speed(h: float) -> float:
+        sim = Simulator(replace(scene, solver=replace(solver, time_step=h, time_step_auto=False)))
+        sim.advance_to(warm)
+        before = dict(zip(sim.part_poses()[0], sim.track_coordinates()[0]))
+        sim.advance_to(end)
+        after = dict(zip(sim.part_poses()[0], sim.track_coordinates()[0]))
+        # by name: parts that a source adds or a sink takes on the way are not measured
+        moved = [after[n] - before[n] for n in before if n in after]
+        if not moved:
+            raise SceneError('auto measures the conveying speed of the parts on the track, '
+                             f'and no part is there from t = {warm:g} to {end:g} s: give a step '
+                             'in s', 'solver.time_step', scene.source)
+        v = float(np.mean(moved)) / (end - warm)
+        candidates.append({'time_step_s': h, 'conveying_speed_mps': v})
+        return v
+
+    h, chosen, error = solver.time_step, None, math.nan
+    diff, scale = math.nan, 1.0
+    v_h = speed(h)
+    for _ in range(AUTO_MAX_HALVINGS):
+        if h / 2 < MIN_TIME_STEP_S:
+            break
+        v_half = speed(h / 2)
+        diff, scale = abs(v_half - v_h), max(abs(v_half), floor)
+        if 2.0 * diff <= solver.tolerance * scale:
+            chosen, error = h, 2.0 * diff / scale
+            break
+        if diff <= solver.tolerance * scale:
+            chosen, error = h / 2, diff / scale
+            break
+        h, v_h = h / 2, v_half
+    met = chosen is not None
+    if not met:
+        chosen = candidates[-1]['time_step_s']
+        log.warning('%s: time_step auto: no step down to %g s keeps the conveying speed within '
+                    '%g (the last halving changed it by %.3g %%); using %g s', scene.name,
+                    chosen, solver.tolerance, 100.0 * diff / scale, chosen)
+    wall = time.perf_counter() - wall0
+    steps = sum((end / c['time_step_s']) for c in candidates)
+    report = {'time_step_s': chosen, 'steps_per_period': period / chosen,
+              'tolerance': solver.tolerance, 'met': met,
+              'estimated_relative_error': error,
+              'fixed_steps_per_period': STEPS_PER_PERIOD,
+              'pilot': {'simulated_s_each': end, 'candidates': candidates,
+                        'steps': int(round(steps)), 'wall_s': wall}}
+    log.info('%s: time_step auto: %g s (%.0f steps per drive period, fixed: %d), conveying '
+             'speed within %.2g %% by the pilot: %d runs of %g s, %d steps, %.2f s wall',
+             scene.name, chosen, period / chosen, STEPS_PER_PERIOD, 100.0 * error,
+             len(candidates), end, steps, wall)
+    return replace(scene, solver=replace(solver, time_step=chosen, time_step_auto=False)), report
 
 
 def _env_tolerance(text: str) -> float:
@@ -338,6 +419,9 @@ class Simulator:
         if changes:
             scene = replace(scene, solver=override_solver(scene.solver, changes,
                                                           f'{scene.name} (override)'))
+        self.time_step_pilot: dict | None = None      # what time_step: auto found and cost
+        if scene.solver.time_step_auto:
+            scene, self.time_step_pilot = auto_time_step(scene)
         self.scene = scene
         self._scene_at_start = scene
         self.world = World.from_scene(scene)

@@ -59,6 +59,12 @@ MAX_GRAVITY_MPS2 = 1e4       # |gravity component|, about 1000 g
 POSE_BOUNDS = (MAX_LENGTH_M, MAX_LENGTH_M, MAX_ANGLE_RAD)        # |x|, |y|, |theta| of a pose
 VELOCITY_BOUNDS = (MAX_SPEED_MPS, MAX_SPEED_MPS, MAX_SPIN_RAD_S)  # |vx|, |vy|, |omega|
 MIN_TIME_STEP_S = 1e-7       # below it a simulated second costs over 1e7 steps
+# `time_step: auto` (time_stepping): the Simulator picks the step by a pilot run, halving from
+# 1/AUTO_FIRST_STEPS_PER_PERIOD of the fastest drive's period until the conveying speed's
+# estimated relative error is within solver.tolerance (AUTO_TOLERANCE when the file gives none)
+AUTO_FIRST_STEPS_PER_PERIOD = 50
+AUTO_TOLERANCE = 0.01
+AUTO_MIN_TOLERANCE = 1e-4    # 100 times finer than 1 %: already 2^7 halvings of the step
 
 
 def within_bounds(pose: np.ndarray, velocity: np.ndarray) -> bool:
@@ -160,13 +166,18 @@ class Vibration:
 @dataclass(frozen=True)
 class SolverSpec:
     """Integrator settings: ``time_step`` in s (the fixed step of time_stepping, the largest step
-    of event_driven), ``tolerance`` the event_driven integrator's relative tolerance."""
+    of event_driven), ``tolerance`` the event_driven integrator's relative tolerance.
+
+    ``time_step_auto`` (``time_step: auto``, time_stepping only): the step is still to be picked
+    by the Simulator's pilot run, starting from ``time_step``; ``tolerance`` is then the
+    relative error of the conveying speed it must meet."""
 
     method: str = 'event_driven'
     time_step: float = 1e-4
     friction_impulse: bool = True
     tolerance: float = 1e-9
     restitution_law: str = 'stronge'   # impulse_based: stronge | poisson | newton
+    time_step_auto: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -663,13 +674,28 @@ def _vibration(value, path: str) -> Vibration | None:
     return Vibration(**_fields(value, path, _VIBRATION))
 
 
+_STEP_AUTO = 'auto'
+_time_step_number = _num(MIN_TIME_STEP_S, 0.1, unit='s',
+                         hint=f'steps below {MIN_TIME_STEP_S:g} s cost over 1e7 per simulated '
+                              'second')
+
+
+def _time_step(value, path: str) -> float | str:
+    if isinstance(value, str) and value.strip() == _STEP_AUTO:
+        return _STEP_AUTO
+    try:
+        return _time_step_number(value, path)
+    except _Invalid as err:
+        if not isinstance(value, str):
+            raise
+        raise _Invalid(path, f'{err.message}; or auto (time_stepping: the step a pilot run '
+                             'picks)') from None
+
+
 _SOLVER = {
     'method': _Field(lambda v, p: _choice(v, p, METHODS), 'one of ' + ', '.join(METHODS),
                      SolverSpec.method),
-    'time_step': _Field(_num(MIN_TIME_STEP_S, 0.1, unit='s',
-                             hint=f'steps below {MIN_TIME_STEP_S:g} s cost over 1e7 per '
-                                  'simulated second'),
-                        'the time step in s', SolverSpec.time_step),
+    'time_step': _Field(_time_step, 'the time step in s, or auto', SolverSpec.time_step),
     'friction_impulse': _Field(_boolean, 'true or false', SolverSpec.friction_impulse),
     'tolerance': _Field(_num(0.0, 1e-2, lo_open=True), 'a relative tolerance',
                         SolverSpec.tolerance),
@@ -680,7 +706,39 @@ _SOLVER = {
 
 
 def _solver(value, path: str) -> SolverSpec:
-    return SolverSpec(**_fields({} if value is None else value, path, _SOLVER))
+    given = {} if value is None else value
+    f = _fields(given, path, _SOLVER)
+    if f['time_step'] == _STEP_AUTO:
+        _auto_method(f['method'], _join(path, 'time_step'))
+        # the first candidate follows from the drives: parse_scene sets it
+        f.update(time_step=SolverSpec.time_step, time_step_auto=True)
+        if 'tolerance' not in given:
+            f['tolerance'] = AUTO_TOLERANCE
+        elif f['tolerance'] < AUTO_MIN_TOLERANCE:
+            raise _Invalid(_join(path, 'tolerance'),
+                           f"{f['tolerance']:g} with time_step: auto asks for the conveying speed "
+                           f"to {100 * f['tolerance']:g} %, beyond a first-order step's reach: "
+                           f'give {AUTO_MIN_TOLERANCE:g} or more (e.g. 0.01 for 1 %)')
+    return SolverSpec(**f)
+
+
+def _auto_method(method: str, path: str) -> None:
+    if method != 'time_stepping':
+        raise _Invalid(path, f'auto picks the fixed step of time_stepping, not of {method}: '
+                             'give a step in s (e.g. 1.0e-4) or method: time_stepping')
+
+
+def _auto_first_step(solver: SolverSpec, bodies) -> SolverSpec:
+    """``time_step: auto``: the pilot's first candidate, a fraction of the fastest drive's
+    period (the pilot measures a conveying speed: a scene without a drive has none)."""
+    frequencies = [b.vibration.frequency for b in bodies
+                   if b.vibration is not None and b.vibration.frequency > 0.0]
+    if not frequencies:
+        raise _Invalid('solver.time_step', 'auto picks the step that keeps the conveying speed '
+                                           'within solver.tolerance, and no body vibrates '
+                                           '(vibration.frequency > 0): give a step in s')
+    step = 1.0 / (AUTO_FIRST_STEPS_PER_PERIOD * max(frequencies))
+    return replace(solver, time_step=min(max(step, MIN_TIME_STEP_S), 0.1))
 
 
 _BODY = {
@@ -1116,6 +1174,13 @@ def override_solver(solver: SolverSpec, changes: Mapping[str, Any],
                 raise _Invalid(_join('solver', key), f'unknown key {key!r}; allowed keys: '
                                                      + ', '.join(_SOLVER))
             out[key] = _SOLVER[key].check(value, _join('solver', key))
+        if out.get('time_step') == _STEP_AUTO:
+            raise _Invalid('solver.time_step', 'auto is a scene file\'s setting (its drives '
+                                               'give the first candidate): give a step in s')
+        if 'time_step' in out:
+            out['time_step_auto'] = False          # a step given replaces the pilot's
+        elif solver.time_step_auto:
+            _auto_method(out.get('method', solver.method), 'solver.time_step')
     except _Invalid as err:
         raise SceneError(err.message, err.path, source) from None
     return replace(solver, **out)
@@ -1147,6 +1212,8 @@ def parse_scene(data: Mapping, source: str = '<dict>',
             raise _Invalid('track', f'no body named {track!r}{_suggest(track, names)}; '
                                     f'expected one of: {", ".join(names)}')
         name = _default_name(source) if f['name'] is _AUTO else f['name']
+        if f['solver'].time_step_auto:
+            f['solver'] = _auto_first_step(f['solver'], bodies)
         exit_at = None if f['outcomes'] is None else f['outcomes'].exit_position
         for k, sink in enumerate(f['sinks'] or ()):
             if sink.past_exit and exit_at is None:
@@ -1424,7 +1491,8 @@ def scene_to_dict(scene: Scene) -> dict:
         'name': scene.name,
         'gravity': _floats(scene.gravity),
         'track': scene.track,
-        'solver': {'method': s.method, 'time_step': float(s.time_step),
+        'solver': {'method': s.method,
+                   'time_step': _STEP_AUTO if s.time_step_auto else float(s.time_step),
                    'friction_impulse': bool(s.friction_impulse),
                    'tolerance': float(s.tolerance),
                    'restitution_law': s.restitution_law},
