@@ -94,7 +94,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _run_until_stopped(args: argparse.Namespace, stops: _StopSignals) -> int:
-    from feeder_sim.run import plot_trajectory, run, write_summary
+    from feeder_sim.run import plot_trajectory, run, run_with_error_estimate, write_summary
     from feeder_sim.simulator import Simulator
 
     record = _output_file('--record', args.record)
@@ -104,9 +104,10 @@ def _run_until_stopped(args: argparse.Namespace, stops: _StopSignals) -> int:
     sim = Simulator(args.scene, method=args.method, time_step=args.time_step,
                     tolerance=args.tolerance, check_energy=args.check_energy)
     stops.unfinished = record
-    result = run(sim, args.duration, publish_rate_hz=args.publish_rate, record=record,
-                 log_time=args.log_time, stop_reason=stops.reason,
-                 on_frame=lambda _: stops.running.set())
+    result = (run_with_error_estimate if args.error_estimate else run)(
+        sim, args.duration, publish_rate_hz=args.publish_rate, record=record,
+        log_time=args.log_time, stop_reason=stops.reason,
+        on_frame=lambda _: stops.running.set())
     if summary_path:
         write_summary(result.summary, summary_path)
     if plot:
@@ -115,9 +116,32 @@ def _run_until_stopped(args: argparse.Namespace, stops: _StopSignals) -> int:
     print(f"{s['scene']}: {s['simulated_s']:.3f} s simulated in {s['wall_s']:.2f} s wall "
           f"({s['method']}, step {s['time_step_s']:g} s, {s['solver']['lcp_solves']} LCP solves, "
           f"{s['solver']['fallbacks']} fallbacks)")
+    if 'time_step_auto' in s:
+        a = s['time_step_auto']
+        print(f"  time step auto: {a['time_step_s']:g} s ({a['steps_per_period']:.0f} steps per "
+              f"drive period, fixed {a['fixed_steps_per_period']}), conveying speed within "
+              f"{100 * a['estimated_relative_error']:.2g} % (tolerance "
+              f"{100 * a['tolerance']:g} %); pilot {len(a['pilot']['candidates'])} runs of "
+              f"{a['pilot']['simulated_s_each']:g} s, {a['pilot']['wall_s']:.2f} s wall")
+    errors = s.get('numerical_error')
+    part_errors = {p['name']: p for p in errors['parts']} if errors else {}
     for part in s['parts']:
+        error = part_errors.get(part['name'], {}).get('mean_velocity_along_track_mps')
         print(f"  {part['name']}: mean speed along track "
-              f"{1e3 * part['mean_velocity_along_track_mps']:.3f} mm/s")
+              f"{1e3 * part['mean_velocity_along_track_mps']:.3f}"
+              + ('' if error is None else f' ± {1e3 * error:.2g}') + ' mm/s')
+    if errors:
+        print(f"  numerical error (±, of the numbers above): {errors['method']}; "
+              f"{errors['companion']['wall_s']:.2f} s wall more, "
+              f"{errors['companion']['cost_ratio']:.2f}x the run")
+        outcomes = errors.get('outcomes', {})
+        o = s.get('outcomes', {})
+        if o.get('exit_position_m') is not None:
+            print(f"  parts exited {o['parts_exited']} ± {outcomes.get('parts_exited', 0):g}, "
+                  f"feed rate {o['feed_rate_parts_per_min']:.3g} ± "
+                  f"{outcomes.get('feed_rate_parts_per_min') or 0:.2g} per min")
+        for line in errors['unresolved']:
+            print(f'  numerical error: changes with the setting: {line}')
     for label, path in (('mcap', args.record), ('summary', args.summary), ('plot', plot)):
         if path:
             print(f'  {label}: {path}')
@@ -270,6 +294,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--time-step', type=float, help="override the scene's solver.time_step")
     p.add_argument('--tolerance', type=float, help="override the scene's solver.tolerance")
     p.add_argument('--json', action='store_true', help='also print the summary as JSON')
+    p.add_argument('--error-estimate', action='store_true',
+                   help='run the scene again at a refined setting (half the step; '
+                        "event_driven: the tolerance / 100) and add each outcome's numerical "
+                        'error to the summary (numerical_error)')
     p.add_argument('--check-energy', type=float, metavar='TOL',
                    help='debug: stop with an error when the mechanical energy rises by more '
                         'than TOL of the energy scale over a step or event without drive '

@@ -18,6 +18,7 @@ import numpy as np
 
 from feeder_sim.output import frames
 from feeder_sim.output.frames import Frame, open_recorder, record_frame
+from feeder_sim.output.numerical_error import companion, companion_scene, summary_errors
 from feeder_sim.output.outcomes import OutcomeTracker
 from feeder_sim.simulator import MAX_PUBLISH_RATE_HZ, Simulator
 
@@ -131,6 +132,39 @@ def run(sim: Simulator, duration_s: float, *, publish_rate_hz: float = 100.0,
     return RunResult(result, traj)
 
 
+def run_with_error_estimate(sim: Simulator, duration_s: float, *, refine: bool = True,
+                            stop_reason: Callable[[], str | None] | None = None,
+                            **kw) -> RunResult:
+    """``run``, then the same scene again at the companion setting
+    (:mod:`feeder_sim.output.numerical_error`; ``refine``: finer, else coarser), without a
+    log; the summary gains ``numerical_error``: each outcome's estimated error under the key
+    the summary gives it, the method and the companion's cost. ``sim`` must be at its scene's
+    start (the companion starts there)."""
+    if sim.t != 0.0:
+        raise ValueError(f'an error estimate runs the scene again from its start: give a '
+                         f'simulator at t = 0, not t = {sim.t:g} s')
+    scene = sim.scene
+    check = None if sim.energy_check is None else sim.energy_check.tolerance
+    result = run(sim, duration_s, stop_reason=stop_reason, **kw)
+    if 'stopped' in result.summary:
+        return result
+    comp = companion(scene.solver, refine=refine)
+    log.info('numerical error: running %s again, %s', scene.name, comp.method)
+    other_sim = Simulator(companion_scene(scene, comp), check_energy=check)
+    other = run(other_sim, duration_s, stop_reason=stop_reason,
+                **{k: v for k, v in kw.items() if k in ('publish_rate_hz', 'progress_every_s')})
+    if 'stopped' in other.summary:
+        result.summary['stopped'] = other.summary['stopped'] | {'in': 'error estimate'}
+        return result
+    errors = summary_errors(result.summary, other.summary, comp)
+    base_wall = result.summary['wall_s']
+    errors['companion'] |= {'wall_s': other.summary['wall_s'],
+                            'cost_ratio': (base_wall + other.summary['wall_s']) / base_wall
+                            if base_wall > 0 else math.nan}
+    result.summary['numerical_error'] = errors
+    return result
+
+
 def summary(sim: Simulator, traj: Trajectory, wall_s: float, duration_s: float) -> dict:
     t, s, _ = traj.arrays()
     # each part over the frames it was there (all of them, without sources and sinks)
@@ -142,10 +176,12 @@ def summary(sim: Simulator, traj: Trajectory, wall_s: float, duration_s: float) 
         mean_v.append((s[last, k] - s[first, k]) / span if span > 0 else 0.0)
         final.append(s[last, k])
     energy = sim.mechanical_energy()
+    pilot = {} if sim.time_step_pilot is None else {'time_step_auto': sim.time_step_pilot}
     return {
         'scene': sim.scene.name,
         'method': sim.method,
         'time_step_s': float(sim.scene.solver.time_step),
+        **pilot,
         'simulated_s': float(duration_s),
         'wall_s': float(wall_s),
         'wall_per_simulated_s': float(wall_s / duration_s),
