@@ -14,9 +14,9 @@ import os
 from pathlib import Path
 import time
 
-from feeder_sim.studies.runner import ordered, run_trials
+from feeder_sim.studies.runner import COMPANIONS, ordered, run_trials, stored
 from feeder_sim.studies.spec import load_study, parse_study, StudyError, StudySpec
-from feeder_sim.studies.summary import plot, write_summary, write_table
+from feeder_sim.studies.summary import attach_numerical_errors, plot, write_summary, write_table
 
 log = logging.getLogger('feeder_sim')
 
@@ -34,8 +34,11 @@ def run_study(study: str | os.PathLike | StudySpec, out: str | os.PathLike, *,
     rows = run_trials(spec, out, scheduler=scheduler, workers=workers)
     wall = time.perf_counter() - start
     table = list(ordered(spec, rows))
+    convergence = None
+    if spec.convergence:
+        convergence = attach_numerical_errors(spec, table, stored(out, COMPANIONS))
     write_table(spec, table, out)
-    summary = write_summary(spec, table, out, wall, workers or 0)
+    summary = write_summary(spec, table, out, wall, workers or 0, convergence)
     if plots:
         summary['plots'] = [str(p) for p in plot(spec, summary, table, out)]
     failed = summary['failed']

@@ -27,6 +27,11 @@ def trial_key(spec: StudySpec, design: dict[str, float], repeat: int) -> str:
     return f'{spec.trial_seed(design, repeat):016x}'
 
 
+# the companions of ``convergence: true`` (a design's first trial at the refined setting),
+# stored beside the trials under the key of the trial they go with
+COMPANIONS = 'convergence'
+
+
 def all_trials(spec: StudySpec) -> list[tuple[str, dict[str, float], int]]:
     """(key, design, repeat) of every trial, designs in order, repeats within each."""
     return [(trial_key(spec, d, r), d, r) for d in spec.designs() for r in range(spec.repeats)]
@@ -41,10 +46,11 @@ def _write_json(path: Path, data: Any) -> None:
     os.replace(tmp, path)
 
 
-def stored(out: Path) -> dict[str, dict]:
-    """The trials already in ``out``, by key (unreadable files are computed again)."""
+def stored(out: Path, folder: str = 'trials') -> dict[str, dict]:
+    """The trials (or companions: ``folder``) already in ``out``, by key (unreadable files are
+    computed again)."""
     rows = {}
-    for path in sorted((out / 'trials').glob('*.json')):
+    for path in sorted((out / folder).glob('*.json')):
         try:
             rows[path.stem] = json.loads(path.read_text())
         except (OSError, ValueError):
@@ -52,8 +58,12 @@ def stored(out: Path) -> dict[str, dict]:
     return rows
 
 
-def _trial_task(spec: StudySpec, design: dict, repeat: int, record_dir: str | None) -> dict:
-    """What a worker runs: the trial, with its MCAP log when the study keeps logs."""
+def _trial_task(spec: StudySpec, design: dict, repeat: int, record_dir: str | None,
+                companion_run: bool = False) -> dict:
+    """What a worker runs: the trial, with its MCAP log when the study keeps logs (or the
+    companion of a design's first trial, without)."""
+    if companion_run:
+        return run_trial(spec, design, repeat, companion_run=True)
     record = None
     if record_dir is not None:
         record = str(Path(record_dir) / f'{trial_key(spec, design, repeat)}.mcap')
@@ -111,11 +121,18 @@ def run_trials(spec: StudySpec, out: Path, *, scheduler: str | None = None,
 
     (out / 'trials').mkdir(parents=True, exist_ok=True)
     rows = stored(out)
+    companions = {}
+    if spec.convergence:
+        (out / COMPANIONS).mkdir(exist_ok=True)
+        companions = stored(out, COMPANIONS)
     # in the order of their keys (hashes): designs next to each other in the grid, which
     # often cost alike (the fast-hopping corner of a speed map), are spread over the study
-    # instead of all coming last and leaving the other workers idle
-    todo = sorted((k, d, r) for k, d, r in all_trials(spec) if k not in rows)
-    total = len(rows) + len(todo)
+    # instead of all coming last and leaving the other workers idle; a companion follows its
+    # trial
+    todo = sorted([(k, False, d, r) for k, d, r in all_trials(spec) if k not in rows]
+                  + [(k, True, d, r) for k, d, r in all_trials(spec)
+                     if spec.convergence and r == 0 and k not in companions])
+    total = len(rows) + len(companions) + len(todo)
     if not todo:
         log.info('study: all %d trials already in %s', total, out)
         return rows
@@ -129,8 +146,9 @@ def run_trials(spec: StudySpec, out: Path, *, scheduler: str | None = None,
         client.run(_warm_worker, spec)
         if timing is not None:
             timing['ready_s'] = time.perf_counter() - start
-        log.info('study: %d trials to run (%d stored) on %d Dask workers (%s)', len(todo),
-                 len(rows), len(client.scheduler_info()['workers']), client.scheduler.address)
+        log.info('study: %d runs to do (%d stored) on %d Dask workers (%s)', len(todo),
+                 len(rows) + len(companions), len(client.scheduler_info()['workers']),
+                 client.scheduler.address)
         # A few trials in flight beyond one per worker, one handed out when one comes back.
         # Submitted all at once, they were split evenly up front and a worker whose trials
         # ran short sat idle at the end (2.5 s of 7 on 16 one-second trials). Exactly one
@@ -142,9 +160,10 @@ def run_trials(spec: StudySpec, out: Path, *, scheduler: str | None = None,
         futures: dict = {}
 
         def submit_next() -> None:
-            for k, d, r in pending:
-                futures[client.submit(_trial_task, spec, d, r, record_dir, key=f'trial-{k}',
-                                      pure=False)] = k
+            for k, extra, d, r in pending:
+                futures[client.submit(_trial_task, spec, d, r, record_dir, extra,
+                                      key=f"{COMPANIONS if extra else 'trial'}-{k}",
+                                      pure=False)] = (k, extra)
                 return
 
         in_flight = as_completed()
@@ -153,10 +172,10 @@ def run_trials(spec: StudySpec, out: Path, *, scheduler: str | None = None,
             submit_next()
         for future in list(futures):
             in_flight.add(future)
-        with tqdm(total=total, initial=len(rows), unit='trial', desc='study',
+        with tqdm(total=total, initial=total - len(todo), unit='run', desc='study',
                   dynamic_ncols=True, mininterval=0.5) as bar:
             for future in in_flight:
-                key = futures.pop(future)
+                key, extra = futures.pop(future)
                 before = set(futures)
                 submit_next()
                 for new in set(futures) - before:
@@ -166,8 +185,9 @@ def run_trials(spec: StudySpec, out: Path, *, scheduler: str | None = None,
                 except Exception as err:    # the worker died: recorded like a failed trial
                     row = {'status': 'error', 'error': f'{type(err).__name__}: {err}'}
                 row['key'] = key
-                _write_json(out / 'trials' / f'{key}.json', row)
-                rows[key] = row
+                _write_json(out / (COMPANIONS if extra else 'trials') / f'{key}.json', row)
+                if not extra:
+                    rows[key] = row
                 bar.update(1)
                 if on_row is not None:
                     on_row(row)

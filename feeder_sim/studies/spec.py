@@ -13,12 +13,18 @@
     objective: {metric: conveying_speed_mps, goal: max}     # ranks designs (default: first)
     record: none                         # per-trial MCAP logs: none | all | jammed
     reference: pointmass                 # optional: the point-mass conveying speed per design
+    convergence: true                    # optional: each design's numerical error (see below)
 
 Value lists and ranges form a grid; sampled parameters (``random`` or ``lhs``, Latin
 hypercube) are drawn together, ``count`` points seeded by ``seed``, and combined with the
 grid. A trial's seed sets what ``perturb`` varies: each part's initial position and angle
 (uniform within the given bounds) and each drive's phase, standing for the randomized
 arrival of parts.
+
+``convergence: true`` runs each design's first trial once more at the refined setting of
+``feeder-sim run --error-estimate`` (half the step; event_driven: the tolerance / 100;
+:mod:`feeder_sim.output.numerical_error`) and reports each metric's numerical error beside
+its interval: one run per design, not per trial.
 """
 
 from __future__ import annotations
@@ -96,6 +102,7 @@ class StudySpec:
     method: str | None = None
     record: str = 'none'                     # per-trial MCAP logs: none | all | jammed
     reference: str | None = None             # 'pointmass': the theory beside the metric
+    convergence: bool = False                # each design's numerical error, on one trial
     objective: str = ''                      # the metric that ranks designs (default: first)
     goal: str = 'max'                        # max | min
     source: str = '<study>'
@@ -254,7 +261,7 @@ def parse_study(data: Any, source: str = '<study>', study_path: Path | None = No
                 ) -> StudySpec:
     """Validate a study given as plain data; every design's scene is checked too."""
     allowed = {'scene', 'duration', 'repeats', 'seed', 'parameters', 'metrics', 'perturb',
-               'publish_rate', 'method', 'record', 'objective', 'reference'}
+               'publish_rate', 'method', 'record', 'objective', 'reference', 'convergence'}
     if not isinstance(data, Mapping):
         raise StudyError(f'expected a mapping with the keys {", ".join(sorted(allowed))}',
                          '', source)
@@ -326,12 +333,15 @@ def parse_study(data: Any, source: str = '<study>', study_path: Path | None = No
     if reference and 'conveying_speed_mps' not in metrics:
         raise StudyError('the point-mass reference is a conveying speed: add the metric '
                          'conveying_speed_mps', 'reference', source)
+    convergence = data.get('convergence', False)
+    if not isinstance(convergence, bool):
+        raise StudyError(f'expected true or false, got {convergence!r}', 'convergence', source)
     if data.get('method') is not None and data['method'] not in METHODS:
         raise StudyError(f'expected one of {", ".join(METHODS)}', 'method', source)
     spec = StudySpec(scene=scene, duration_s=duration, repeats=repeats, seed=seed,
                      parameters=parameters, metrics=tuple(metrics), perturb=perturb,
                      publish_rate_hz=rate, method=data.get('method'), record=record,
-                     reference=reference,
+                     reference=reference, convergence=convergence,
                      objective=objective['metric'], goal=objective.get('goal', 'max'),
                      source=source)
     try:

@@ -6,12 +6,19 @@ pooled over the trials' fed parts or parts) gets Wilson's score interval (scipy'
 any other metric the mean's Student-t interval over its trials (none from a single trial).
 The best design is the one with the best mean of the study's objective (ties: the surest
 interval). ``overall`` in study.json takes every trial together.
+
+Numerical error (``convergence: true``): per design and metric, the estimate from the
+design's first trial and its companion (:mod:`feeder_sim.output.numerical_error`), in the
+column ``<metric>_numerical_error`` of that trial's row and as ``numerical_error`` beside the
+interval in study.json. Where it exceeds the interval's half-width the study warns: the step,
+not the trials, then limits what the design's numbers can tell apart.
 """
 
 from __future__ import annotations
 
 import csv
 import json
+import logging
 import math
 from pathlib import Path
 from typing import Any
@@ -20,8 +27,43 @@ import numpy as np
 from scipy import stats
 
 from feeder_sim.model.scene import Scene
+from feeder_sim.output.numerical_error import Companion, metric_errors
 from feeder_sim.reports.pointmass import conveyor_of, mean_speed
 from feeder_sim.studies.spec import scene_of_design, StudySpec
+
+log = logging.getLogger('feeder_sim')
+
+ERROR_SUFFIX = '_numerical_error'
+ROUND_OFF = 1e-9
+
+
+def attach_numerical_errors(spec: StudySpec, rows: list[dict],
+                            companions: dict[str, dict]) -> dict[str, Any]:
+    """Put each metric's numerical error on the row of each design's first trial (from its
+    companion, by key); returns what study.json says of the estimate: its method and cost."""
+    method, measured, failed = None, 0, 0
+    trials_wall = sum(r.get('wall_s', 0.0) for r in rows)
+    companions_wall = 0.0
+    for row in rows:
+        if row.get('repeat') != 0:
+            continue
+        other = companions.get(row.get('key'))
+        if other is None:
+            continue
+        companions_wall += other.get('wall_s', 0.0)
+        if row.get('status') != 'ok' or other.get('status') != 'ok':
+            failed += 1
+            continue
+        comp = Companion.from_rule(other['numerical_error'])
+        method = comp.method
+        for metric, error in metric_errors(row, other, spec.metrics, comp).items():
+            row[metric + ERROR_SUFFIX] = error
+        measured += 1
+    return {'method': method, 'designs_measured': measured, 'designs_failed': failed,
+            'trials_wall_s': trials_wall, 'companions_wall_s': companions_wall,
+            # the compute the estimate adds, against the trials' own (cluster start-up aside)
+            'cost_ratio': (trials_wall + companions_wall) / trials_wall if trials_wall
+            else math.nan}
 
 
 def wilson(successes: float, n: float) -> tuple[float, float]:
@@ -55,6 +97,12 @@ def design_statistics(spec: StudySpec, rows: list[dict]) -> list[dict[str, Any]]
         trials = [r for r in rows if r['design'] == index]
         entry = {'design': index, 'parameters': {n: trials[0][n] for n in names},
                  **metric_statistics(spec, trials)}
+        if spec.convergence:
+            first = [r for r in trials if r.get('repeat') == 0]
+            for metric, stats_ in entry['metrics'].items():
+                error = first[0].get(metric + ERROR_SUFFIX) if first else None
+                stats_['numerical_error'] = (float(error) if error is not None
+                                             and math.isfinite(error) else None)
         if spec.reference == 'pointmass':
             scene = scene_of_design(spec, entry['parameters'])
             entry['reference'] = {'conveying_speed_mps': pointmass_speed(scene)}
@@ -121,8 +169,10 @@ COLUMNS_LAST = ('status', 'error', 'wall_s', 'key', 'log')
 
 def write_table(spec: StudySpec, rows: list[dict], out: Path) -> list[str]:
     """results.csv and results.parquet: a row per trial; returns the columns."""
+    errors = [m + ERROR_SUFFIX for m in spec.metrics] if spec.convergence else []
     columns = (['design', *[p.name for p in spec.parameters], 'repeat', 'seed',
-                *spec.metrics] + [c for c in COLUMNS_LAST if any(c in r for r in rows)])
+                *spec.metrics, *errors]
+               + [c for c in COLUMNS_LAST if any(c in r for r in rows)])
     with open(out / 'results.csv', 'w', newline='') as f:
         writer = csv.writer(f)
         writer.writerow(columns)
@@ -135,10 +185,35 @@ def write_table(spec: StudySpec, rows: list[dict], out: Path) -> list[str]:
     return columns
 
 
+def numerical_error_warnings(spec: StudySpec, designs: list[dict]) -> list[str]:
+    """A line per design and metric whose numerical error exceeds the half-width of its 95 %
+    interval (logged as a warning too)."""
+    lines = []
+    for d in designs:
+        for metric, m in d['metrics'].items():
+            error, (lo, hi) = m.get('numerical_error'), m['ci95']
+            if error is None or not (math.isfinite(lo) and math.isfinite(hi)):
+                continue
+            half = (hi - lo) / 2.0
+            # differences at the round-off of the time grid (a feed rate's span) are no signal
+            if error > half and error > ROUND_OFF * abs(m['mean']):
+                values = ', '.join(f'{k}={v:g}' for k, v in d['parameters'].items())
+                lines.append(f"design {d['design']} ({values}): the numerical error of {metric}, "
+                             f'{error:.3g}, exceeds the half-width of its 95 % interval, '
+                             f'{half:.3g}: refine the step before trusting a ranking by it')
+    for line in lines:
+        log.warning('study: %s', line)
+    return lines
+
+
 def write_summary(spec: StudySpec, rows: list[dict], out: Path, wall_s: float,
-                  workers: int) -> dict:
+                  workers: int, convergence: dict | None = None) -> dict:
     designs = design_statistics(spec, rows)
     best = best_design(spec, designs)
+    extra: dict[str, Any] = {}
+    if convergence is not None:
+        extra = {'convergence': convergence,
+                 'warnings': numerical_error_warnings(spec, designs)}
     summary = {
         'study': spec.source, 'scene': spec.scene, 'duration_s': spec.duration_s,
         'repeats': spec.repeats, 'seed': spec.seed, 'metrics': list(spec.metrics),
@@ -149,6 +224,7 @@ def write_summary(spec: StudySpec, rows: list[dict], out: Path, wall_s: float,
         'best_design': None if best is None else best['design'],
         # every trial of the study together (a drop test's resting distribution)
         'overall': metric_statistics(spec, rows),
+        **extra,
         'designs': designs,
     }
     (out / 'study.json').write_text(json.dumps(summary, indent=2, default=float) + '\n')
@@ -157,7 +233,9 @@ def write_summary(spec: StudySpec, rows: list[dict], out: Path, wall_s: float,
 
 def plot(spec: StudySpec, summary: dict, rows: list[dict], out: Path) -> list[Path]:
     """A PNG per metric: against the parameter with the interval band (one parameter), or a
-    map over two (a grid as cells, a sample as dots); the best design marked."""
+    map over two (a grid as cells, a sample as dots); the best design marked. With
+    ``convergence``: the numerical error as error bars beside the interval's (one parameter),
+    or a panel below the map with both kinds per design."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
@@ -167,10 +245,23 @@ def plot(spec: StudySpec, summary: dict, rows: list[dict], out: Path) -> list[Pa
     best = summary['best_design']
     written = []
     for metric in spec.metrics:
-        fig, ax = plt.subplots(figsize=(7, 4.5), dpi=120)
         mean = np.array([d['metrics'][metric]['mean'] for d in designs])
         lo = np.array([d['metrics'][metric]['ci95'][0] for d in designs])
         hi = np.array([d['metrics'][metric]['ci95'][1] for d in designs])
+        numerical = None
+        if spec.convergence:
+            numerical = np.array([np.nan if d['metrics'][metric].get('numerical_error') is None
+                                  else d['metrics'][metric]['numerical_error']
+                                  for d in designs])
+        if numerical is not None and len(names) > 1:
+            fig, (ax, low) = plt.subplots(2, 1, figsize=(7, 7.5), dpi=120,
+                                          height_ratios=(3, 2))
+            _error_bars(low, np.arange(len(designs)), mean, lo, hi, numerical)
+            low.set_xlabel('design')
+            low.set_ylabel(metric)
+            low.grid(True, alpha=0.3)
+        else:
+            fig, ax = plt.subplots(figsize=(7, 4.5), dpi=120)
         if len(names) == 1:
             x = np.array([d['parameters'][names[0]] for d in designs])
             o = np.argsort(x)
@@ -186,6 +277,8 @@ def plot(spec: StudySpec, summary: dict, rows: list[dict], out: Path) -> list[Pa
             theory = _reference(designs, metric)
             if theory is not None:
                 ax.plot(x[o], theory[o], 'k--', lw=1, label='point-mass theory')
+            if numerical is not None:
+                _error_bars(ax, x, mean, None, None, numerical)
             ax.set_xlabel(names[0])
             ax.set_ylabel(metric)
             ax.legend(fontsize=8)
@@ -226,6 +319,20 @@ def plot(spec: StudySpec, summary: dict, rows: list[dict], out: Path) -> list[Pa
     if len(shares) > 1:
         written.append(_plot_shares(spec, summary, shares, out, plt))
     return written
+
+
+def _error_bars(ax, x: np.ndarray, mean: np.ndarray, lo: np.ndarray | None,
+                hi: np.ndarray | None, numerical: np.ndarray) -> None:
+    """Error bars of two kinds at each design: the 95 % interval over the trials (thin, with
+    caps) and the numerical error (thick, none where it was not measured)."""
+    if lo is not None:
+        ok = np.isfinite(lo) & np.isfinite(hi)
+        ax.errorbar(x[ok], mean[ok], yerr=[mean[ok] - lo[ok], hi[ok] - mean[ok]], fmt='o',
+                    ms=3, color='tab:blue', capsize=4, lw=1, label='95 % interval (trials)')
+    ok = np.isfinite(numerical) & np.isfinite(mean)
+    ax.errorbar(x[ok], mean[ok], yerr=numerical[ok], fmt='none', ecolor='tab:orange', lw=4,
+                alpha=0.7, label='± numerical error (step)')
+    ax.legend(fontsize=8)
 
 
 def _reference(designs: list[dict], metric: str) -> np.ndarray | None:

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from feeder_sim.model.scene import Scene
+from feeder_sim.output.numerical_error import companion, companion_scene
 from feeder_sim.output.outcomes import classify
 from feeder_sim.run import run
 from feeder_sim.simulator import Simulator
@@ -85,14 +86,29 @@ def metrics_of(summary: Mapping[str, Any], names: tuple[str, ...],
 
 
 def run_trial(spec: StudySpec, design: Mapping[str, float], repeat: int,
-              record_path: str | None = None) -> dict[str, Any]:
-    """Run one trial; a row of the results table (parameters, seed, metrics, status)."""
+              record_path: str | None = None, *, companion_run: bool = False
+              ) -> dict[str, Any]:
+    """Run one trial; a row of the results table (parameters, seed, metrics, status).
+
+    ``companion_run``: the trial's companion for its numerical error instead (the same start
+    at the refined setting of :mod:`feeder_sim.output.numerical_error`, as ``feeder-sim run
+    --error-estimate`` takes it); its row holds the rule that turns the difference into an
+    error (``numerical_error``)."""
     seed = spec.trial_seed(design, repeat)
     row: dict[str, Any] = {**design, 'repeat': repeat, 'seed': seed}
     start = time.perf_counter()
     try:
         scene = perturbed(scene_of_design(spec, design), spec.perturb, seed)
-        sim = Simulator(scene, method=spec.method)
+        if companion_run:
+            # from the setting the trial itself runs at: a method override's step or an auto
+            # step as the trial's Simulator resolves it
+            if spec.method not in (None, scene.solver.method) or scene.solver.time_step_auto:
+                scene = Simulator(scene, method=spec.method).scene
+            comp = companion(scene.solver)
+            row['numerical_error'] = comp.rule()
+            sim = Simulator(companion_scene(scene, comp))
+        else:
+            sim = Simulator(scene, method=spec.method)
         result = run(sim, spec.duration_s, publish_rate_hz=spec.publish_rate_hz,
                      record=record_path, progress_every_s=math.inf)
         resting = [classify(float(a) - sim.world.track_angle, sim.scene.outcomes)
