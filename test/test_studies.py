@@ -366,3 +366,11 @@ def test_every_shipped_study_is_valid():
     for path in studies:
         spec = load_study(path)                       # the file and every design's scene
         assert spec.designs() and spec.metrics
+
+
+def test_convergence_is_true_or_false():
+    assert parse_study({**SMALL, 'convergence': True}).convergence
+    assert not parse_study(SMALL).convergence
+    with pytest.raises(StudyError) as err:
+        parse_study({**SMALL, 'convergence': 'yes'})
+    assert err.value.path == 'convergence' and 'expected true or false' in err.value.message
