@@ -222,8 +222,15 @@ def _study(args: argparse.Namespace) -> int:
     if best is not None:
         d = summary['designs'][[e['design'] for e in summary['designs']].index(best)]
         m = d['metrics'][summary['objective']['metric']]
+        error = m.get('numerical_error')
         print(f"  best design {best}: {d['parameters']}, {summary['objective']['metric']} = "
-              f"{m['mean']:.6g} (95 % interval {m['ci95'][0]:.6g} .. {m['ci95'][1]:.6g})")
+              f"{m['mean']:.6g} (95 % interval {m['ci95'][0]:.6g} .. {m['ci95'][1]:.6g}"
+              + ('' if error is None else f', numerical error ± {error:.3g}') + ')')
+    if 'convergence' in summary:
+        c = summary['convergence']
+        print(f"  numerical error on {c['designs_measured']} designs ({c['method']}), "
+              f"{c['cost_ratio']:.2f}x the trials' time; {len(summary['warnings'])} design "
+              'metrics with an error beyond their interval (study.json: warnings)')
     return 0
 
 
