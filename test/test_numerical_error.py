@@ -255,6 +255,8 @@ def test_auto_is_read_checked_and_written_back():
     with pytest.raises(SceneError, match='solver.time_step: auto picks the fixed step of '
                                          'time_stepping, not of impulse_based'):
         Simulator(scene, method='impulse_based')
+    with pytest.raises(SceneError, match=r'solver.tolerance: 1e-09 with time_step: auto'):
+        Simulator(scene, tolerance=1e-9)
     # a step given replaces the pilot
     assert Simulator(scene, time_step=1e-4).scene.solver.time_step == 1e-4
 

@@ -715,11 +715,14 @@ def _solver(value, path: str) -> SolverSpec:
         if 'tolerance' not in given:
             f['tolerance'] = AUTO_TOLERANCE
         elif f['tolerance'] < AUTO_MIN_TOLERANCE:
-            raise _Invalid(_join(path, 'tolerance'),
-                           f"{f['tolerance']:g} with time_step: auto asks for the conveying speed "
-                           f"to {100 * f['tolerance']:g} %, beyond a first-order step's reach: "
-                           f'give {AUTO_MIN_TOLERANCE:g} or more (e.g. 0.01 for 1 %)')
+            raise _Invalid(_join(path, 'tolerance'), _auto_tolerance_problem(f['tolerance']))
     return SolverSpec(**f)
+
+
+def _auto_tolerance_problem(tolerance: float) -> str:
+    return (f"{tolerance:g} with time_step: auto asks for the conveying speed to "
+            f"{100 * tolerance:g} %, beyond a first-order step's reach: give "
+            f'{AUTO_MIN_TOLERANCE:g} or more (e.g. 0.01 for 1 %)')
 
 
 def _auto_method(method: str, path: str) -> None:
@@ -1181,6 +1184,8 @@ def override_solver(solver: SolverSpec, changes: Mapping[str, Any],
             out['time_step_auto'] = False          # a step given replaces the pilot's
         elif solver.time_step_auto:
             _auto_method(out.get('method', solver.method), 'solver.time_step')
+            if out.get('tolerance', AUTO_MIN_TOLERANCE) < AUTO_MIN_TOLERANCE:
+                raise _Invalid('solver.tolerance', _auto_tolerance_problem(out['tolerance']))
     except _Invalid as err:
         raise SceneError(err.message, err.path, source) from None
     return replace(solver, **out)
