@@ -158,7 +158,7 @@ class TimeStepSettings(CheckedSettings):
         'touch_m': '>= 0', 'projection_slop_m': '>= 0', 'projection_reach': '> 0',
         'slop_m': '>= 0', 'push_out': '[0, 1]', 'push_max_mps': '>= 0',
         'speculative_depth': '>= 0', 'slip_tol_mps': '>= 0', 'lcp_tol': '> 0',
-        'direct_max_rows': '>= 0', 'pgs_tol_mps': '>= 0', 'pgs_max_sweeps': '>= 0',
+        'direct_max_rows': '>= 0', 'pgs_tol_mps': '>= 0', 'pgs_max_sweeps': '>= 1',
         'pgs_check': '>= 1', 'pgs_omega': '(0, 2)'}
 
     touch_m: float = 1e-9          # gap below which a contact is touching
