@@ -188,12 +188,20 @@ def _scenes(_: argparse.Namespace) -> int:
 
 def _replay(args: argparse.Namespace) -> int:
     try:
-        from feeder_sim.output.replay import replay
+        from feeder_sim.output.replay import DamagedLogError, replay
     except ImportError as err:  # rerun-sdk is the optional 'replay' extra
         raise NotImplementedError(
             f"replay needs rerun-sdk (pip install 'feeder_sim[replay]'): {err}") from err
 
-    rrd = replay(args.log, args.rrd, spawn=args.spawn)
+    out = _output_file('--rrd', args.rrd)
+    try:
+        rrd = replay(args.log, out, spawn=args.spawn, allow_damaged=args.allow_damaged)
+    except DamagedLogError as err:
+        for line in err.lines:
+            print(f'feeder-sim: damaged: {line}', file=sys.stderr)
+        print('feeder-sim: nothing written; --allow-damaged replays the rest of the log',
+              file=sys.stderr)
+        return 1
     print(rrd)
     print(f'  open it with: rerun {rrd}')
     return 0
@@ -320,6 +328,9 @@ def build_parser() -> argparse.ArgumentParser:
     viewer.add_argument('--no-viewer', dest='spawn', action='store_const', const=False,
                         help='only write the file (default: open the viewer if there is a '
                              'display)')
+    p.add_argument('--allow-damaged', action='store_true',
+                   help='replay a damaged log (chunks failing their CRC) without the frames it '
+                        'lost, each lost time range a warning (default: exit 1 naming them)')
     p.set_defaults(func=_replay, spawn=None)
 
     p = sub.add_parser('paper', help="regenerate the paper's figures (PNG + JSON)")

@@ -47,7 +47,7 @@ messages, 15 MB) about 1.7 s.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Container, Iterator
 from dataclasses import dataclass, field
 import functools
 import hashlib
@@ -57,29 +57,37 @@ import logging
 import math
 import os
 from pathlib import Path
+import stat
 import struct
 import subprocess
 import sys
 from typing import NamedTuple
 import uuid
-import warnings
+import zlib
 
 from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
-from mcap.records import Metadata
+from mcap.records import Channel, Chunk, ChunkIndex, Message, Metadata, MetadataIndex, Schema
 import numpy as np
 import pyarrow as pa
 import rerun as rr
 import rerun.blueprint as rrb
+from scipy.spatial.distance import pdist
 
-from feeder_sim.model.scene import parse_scene, Scene
+from feeder_sim.model.scene import (
+    _check_nesting,
+    MAX_FILE_BYTES,
+    MAX_NESTING,
+    MAX_POLYGON_VERTICES,
+    parse_scene,
+    Scene,
+    SceneError,
+)
 from feeder_sim.output import msgdefs
 from feeder_sim.output.recording import (
     CONTACT_FIELDS,
     CONTACT_POINT_DTYPE,
-    read_messages,
     SENSOR_PREFIX,
-    top_level_records,
     TOPIC_CONTACTS,
     TOPIC_PART_POSES,
     TOPIC_TRACK_STATE,
@@ -87,7 +95,8 @@ from feeder_sim.output.recording import (
     TOPICS,
 )
 
-__all__ = ['APPLICATION_ID', 'TIMELINE', 'impulse_scale', 'part_size', 'replay']
+__all__ = ['APPLICATION_ID', 'DamagedLogError', 'TIMELINE', 'impulse_scale', 'part_size',
+           'replay']
 
 log = logging.getLogger('feeder_sim')
 
@@ -172,23 +181,429 @@ def _check_mcap(path: Path) -> None:
         raise ValueError(f'{path}: {what}')
 
 
-def _read_metadata(path: Path) -> dict[str, dict[str, str]]:
-    """Metadata records by name, from a walk over the top-level records.
+class DamagedLogError(ValueError):
+    """The log holds damaged records: ``lines`` says, one line each, which frames (time
+    range) or metadata were lost and where. ``replay(..., allow_damaged=True)`` replays the
+    rest instead."""
 
-    The walk needs neither the summary nor the footer (a killed writer leaves neither) and
-    skips chunk bodies without reading them; it stops at the first incomplete record.
+    def __init__(self, lines: list[str]):
+        self.lines = list(lines)
+        super().__init__('\n'.join(self.lines))
+
+
+@dataclass
+class _Damage:
+    """A record the log holds but that cannot be read: its byte offset, the log times (ns)
+    of the messages it held where known, and why."""
+
+    offset: int
+    reason: str
+    start_ns: int | None = None
+    end_ns: int | None = None
+    what: str = 'chunk'
+
+
+class _Bad(Exception):
+    """A record that cannot be read; the message says why, for the damage report."""
+
+
+_RECORD_HEADER = struct.Struct('<BQ')
+_FOOTER = struct.Struct('<BQQQI')    # opcode, length, summary start, summary offset start, crc
+# Opcodes 0x01-0x0F are the specification's, 0x80 and up are for other programs' own records;
+# anything else where a record should start means the walk has left the record boundaries.
+_KNOWN_OPCODE = frozenset(range(0x01, 0x10)) | frozenset(range(0x80, 0x100))
+# A chunk's declared uncompressed size is allocated before it is checked; a damaged size field
+# must not ask for gigabytes. mcap writers chunk by a few MiB at most (feeder_sim: 256 KiB).
+_MAX_CHUNK_BYTES = 1 << 28
+
+
+def _decompressed(chunk: Chunk) -> bytes:
+    """A chunk's records, decompressed with its declared size as the bound."""
+    size = chunk.uncompressed_size
+    if size > _MAX_CHUNK_BYTES:
+        raise _Bad(f'declared size {size} bytes is beyond {_MAX_CHUNK_BYTES}')
+    if chunk.compression == '':
+        data = chunk.data
+    elif chunk.compression == 'zstd':
+        import zstandard
+        # a stream reads at most what is asked for, whatever the frame header claims
+        with zstandard.ZstdDecompressor().stream_reader(chunk.data) as reader:
+            data = reader.read(size + 1)
+    elif chunk.compression == 'lz4':
+        import lz4.frame
+        data = lz4.frame.LZ4FrameDecompressor().decompress(chunk.data, max_length=size + 1)
+    else:
+        raise _Bad(f'unknown compression {chunk.compression[:20]!r}')
+    if len(data) != size:
+        raise _Bad(f'{len(data)} bytes where {size} were declared')
+    return data
+
+
+def _chunk_records(body: bytes) -> tuple[Chunk, list]:
+    """The chunk in a Chunk record's body and its Schema, Channel and Message records;
+    raises _Bad when it fails its CRC or does not parse."""
+    try:
+        chunk = Chunk.read(ReadDataStream(io.BytesIO(body)))
+    except Exception as err:  # noqa: BLE001 - any parse failure is damage
+        raise _Bad(f'unreadable chunk header ({type(err).__name__})') from None
+    try:
+        data = _decompressed(chunk)
+    except _Bad:
+        raise
+    except Exception as err:  # noqa: BLE001 - the codecs raise their own types
+        raise _Bad(f'cannot be decompressed ({err})') from None
+    if chunk.uncompressed_crc and zlib.crc32(data) != chunk.uncompressed_crc:
+        raise _Bad('CRC mismatch')
+    records, pos = [], 0
+    try:
+        while pos < len(data):
+            opcode, length = _RECORD_HEADER.unpack_from(data, pos)
+            pos += _RECORD_HEADER.size
+            if length > len(data) - pos:
+                raise _Bad('a record runs past the chunk')
+            stream = ReadDataStream(io.BytesIO(data[pos:pos + length]))
+            if opcode == Opcode.MESSAGE:
+                records.append(Message.read(stream, length))
+            elif opcode == Opcode.CHANNEL:
+                records.append(Channel.read(stream))
+            elif opcode == Opcode.SCHEMA:
+                records.append(Schema.read(stream))
+            pos += length
+    except _Bad:
+        raise
+    except Exception as err:  # noqa: BLE001 - without a CRC, parsing is the only check
+        raise _Bad(f'unreadable records ({type(err).__name__})') from None
+    return chunk, records
+
+
+class _LogReader:
+    """Reads a log record by record, noting every record that cannot be read.
+
+    A finished log whose summary passes its CRC is read chunk by chunk through the summary's
+    chunk index (a damaged record then costs only itself, and the index says which log times
+    it held); otherwise the records are walked from the start, which needs neither summary
+    nor footer (a killed writer leaves neither). Each chunk is checked against its CRC before
+    its messages are used. A walk stopped by a record that reaches past the end of a log
+    without a footer is the cut of a killed writer (``truncated``), not damage.
     """
-    found: dict[str, dict[str, str]] = {}
-    with open(path, 'rb') as stream:
-        size = os.fstat(stream.fileno()).st_size
-        stream.seek(len(_MCAP_MAGIC))
-        for _, body, _ in top_level_records(stream, size, (Opcode.METADATA,)):
-            try:
-                record = Metadata.read(ReadDataStream(io.BytesIO(body)))
-            except Exception:  # noqa: BLE001 - a damaged record ends the readable part
-                break
-            found[record.name] = record.metadata
-    return found
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.damage: list[_Damage] = []
+        self.channels: dict[int, Channel] = {}
+        self.schemas: dict[int, Schema] = {}
+        self.truncated = False
+        self.summary_damaged = False
+        self._good: list[tuple[int, int, int]] = []   # (offset, start, end) of good chunks
+        self._lost_channels: dict[int, list[int]] = {}   # channel id -> [offset, t0, t1]
+        with open(path, 'rb') as stream:
+            self.size = os.fstat(stream.fileno()).st_size
+            self.finished = self._ends_in_magic(stream)
+            self._summary = self._read_summary(stream) if self.finished else None
+
+    # -- summary -----------------------------------------------------------------------------
+
+    def _ends_in_magic(self, stream) -> bool:
+        if self.size < 2 * len(_MCAP_MAGIC) + _FOOTER.size:
+            return False
+        stream.seek(self.size - len(_MCAP_MAGIC))
+        return stream.read() == _MCAP_MAGIC
+
+    def _read_summary(self, stream) -> dict | None:
+        """Chunk and metadata indexes, channels and schemas of the summary, when it is there
+        and passes its CRC; None otherwise."""
+        footer_at = self.size - len(_MCAP_MAGIC) - _FOOTER.size
+        stream.seek(footer_at)
+        opcode, length, start, offsets, crc = _FOOTER.unpack(stream.read(_FOOTER.size))
+        if opcode != Opcode.FOOTER or length != _FOOTER.size - _RECORD_HEADER.size:
+            self.summary_damaged = True
+            return None
+        if start == 0:
+            return None
+        if not len(_MCAP_MAGIC) <= start <= footer_at:
+            self.summary_damaged = True
+            return None
+        stream.seek(start)
+        data = stream.read(footer_at - start)
+        if crc and zlib.crc32(_FOOTER.pack(opcode, length, start, offsets, 0)[:-4],
+                              zlib.crc32(data)) != crc:
+            self.summary_damaged = True
+            return None
+        summary: dict = {'chunks': [], 'metadata': [], 'channels': {}, 'schemas': {}}
+        pos = 0
+        try:
+            while pos < len(data):
+                opcode, length = _RECORD_HEADER.unpack_from(data, pos)
+                pos += _RECORD_HEADER.size
+                stream_ = ReadDataStream(io.BytesIO(data[pos:pos + length]))
+                if opcode == Opcode.CHUNK_INDEX:
+                    summary['chunks'].append(ChunkIndex.read(stream_))
+                elif opcode == Opcode.METADATA_INDEX:
+                    summary['metadata'].append(MetadataIndex.read(stream_))
+                elif opcode == Opcode.CHANNEL:
+                    channel = Channel.read(stream_)
+                    summary['channels'][channel.id] = channel
+                elif opcode == Opcode.SCHEMA:
+                    schema = Schema.read(stream_)
+                    summary['schemas'][schema.id] = schema
+                pos += length
+        except Exception:  # noqa: BLE001 - a summary that passed its CRC but does not parse
+            self.summary_damaged = True
+            return None
+        if not all(len(_MCAP_MAGIC) <= c.chunk_start_offset
+                   and c.chunk_start_offset + c.chunk_length <= start
+                   for c in summary['chunks']):
+            self.summary_damaged = True
+            return None
+        summary['chunks'].sort(key=lambda c: c.chunk_start_offset)
+        self.channels.update(summary['channels'])
+        self.schemas.update(summary['schemas'])
+        return summary
+
+    @property
+    def indexed(self) -> bool:
+        return self._summary is not None and bool(self._summary['chunks'])
+
+    # -- walking -----------------------------------------------------------------------------
+
+    def _walk(self, stream, wanted: Container[int], note: bool = True
+              ) -> Iterator[tuple[int, int, bytes]]:
+        """(opcode, offset, body) of the top-level records of the opcodes wanted, from the
+        start to the data end; where the walk cannot go on, the rest is damage (a finished
+        log) or the cut of a killed writer (``truncated``)."""
+        pos = len(_MCAP_MAGIC)
+        stream.seek(pos)
+        while True:
+            head = stream.read(_RECORD_HEADER.size)
+            if len(head) < _RECORD_HEADER.size:
+                if note:
+                    self._stopped(pos, 'the log ends inside a record header', cut=True)
+                return
+            opcode, length = _RECORD_HEADER.unpack(head)
+            if opcode in (Opcode.FOOTER, Opcode.DATA_END):
+                return
+            body_at = pos + _RECORD_HEADER.size
+            if opcode not in _KNOWN_OPCODE:
+                if note:
+                    self._stopped(pos, f'no record starts there (opcode 0x{opcode:02x})')
+                return
+            if length > self.size - body_at:
+                if note:
+                    self._stopped(pos, f'a record of {length} bytes runs past the end of '
+                                       'the file', cut=True)
+                return
+            if opcode in wanted:
+                yield opcode, pos, stream.read(length)
+            else:
+                stream.seek(length, io.SEEK_CUR)
+            pos = body_at + length
+
+    def _stopped(self, pos: int, reason: str, cut: bool = False) -> None:
+        if cut and not self.finished:
+            self.truncated = pos < self.size
+        else:
+            self.damage.append(_Damage(pos, reason, what='record'))
+
+    # -- metadata ----------------------------------------------------------------------------
+
+    def metadata(self) -> dict[str, dict[str, str]]:
+        """Metadata records by name (the first of each name)."""
+        found: dict[str, dict[str, str]] = {}
+        with open(self.path, 'rb') as stream:
+            if self._summary is not None and self._summary['metadata']:
+                places = []
+                for index in self._summary['metadata']:
+                    stream.seek(index.offset)
+                    places.append((index.offset, stream.read(index.length)))
+                records = ((o, b[_RECORD_HEADER.size:]) for o, b in places
+                           if b[:1] == bytes([Opcode.METADATA]))
+                if len(places) != sum(b[:1] == bytes([Opcode.METADATA]) for _, b in places):
+                    self.damage.append(_Damage(places[0][0], 'a metadata index points at '
+                                               'another record', what='metadata'))
+            else:
+                # where a walk stops is told once, by the walk over the messages
+                records = [(o, b) for _, o, b in self._walk(stream, (Opcode.METADATA,), False)]
+            for offset, body in records:
+                try:
+                    record = Metadata.read(ReadDataStream(io.BytesIO(body)))
+                except Exception as err:  # noqa: BLE001 - no CRC covers metadata
+                    self.damage.append(_Damage(offset, f'unreadable ({type(err).__name__})',
+                                               what='metadata'))
+                    continue
+                found.setdefault(record.name, record.metadata)
+        return found
+
+    # -- messages ----------------------------------------------------------------------------
+
+    def messages(self) -> Iterator[tuple[str, int, bytes]]:
+        """(topic, log time ns, payload) of every message that can be read, in file order."""
+        with open(self.path, 'rb') as stream:
+            if self.indexed:
+                for index in self._summary['chunks']:
+                    stream.seek(index.chunk_start_offset)
+                    record = stream.read(index.chunk_length)
+                    opcode = record[0] if record else None
+                    if opcode != Opcode.CHUNK:
+                        self._chunk_lost(index.chunk_start_offset, 'no chunk where the index '
+                                         'puts one', index.message_start_time,
+                                         index.message_end_time)
+                        continue
+                    yield from self._chunk(index.chunk_start_offset,
+                                           record[_RECORD_HEADER.size:],
+                                           (index.message_start_time, index.message_end_time))
+                return
+            wanted = (Opcode.CHUNK, Opcode.CHANNEL, Opcode.SCHEMA, Opcode.MESSAGE)
+            for opcode, offset, body in self._walk(stream, wanted):
+                if opcode == Opcode.CHUNK:
+                    yield from self._chunk(offset, body, None)
+                    continue
+                try:
+                    stream_ = ReadDataStream(io.BytesIO(body))
+                    if opcode == Opcode.MESSAGE:
+                        records = [Message.read(stream_, len(body))]
+                    elif opcode == Opcode.CHANNEL:
+                        records = [Channel.read(stream_)]
+                    else:
+                        records = [Schema.read(stream_)]
+                except Exception as err:  # noqa: BLE001 - damage, reported with the rest
+                    self.damage.append(_Damage(offset, f'unreadable ({type(err).__name__})',
+                                               what='record'))
+                    continue
+                yield from self._records(offset, records)
+
+    def _chunk(self, offset: int, body: bytes, times: tuple[int, int] | None
+               ) -> Iterator[tuple[str, int, bytes]]:
+        try:
+            chunk, records = _chunk_records(body)
+        except _Bad as err:
+            if times is None:
+                times = _chunk_times(body)
+            self._chunk_lost(offset, str(err), *times)
+            return
+        # the index's times where there is one: a chunk's CRC does not cover its header
+        self._good.append((offset, *(times or (chunk.message_start_time,
+                                               chunk.message_end_time))))
+        yield from self._records(offset, records)
+
+    def _chunk_lost(self, offset: int, reason: str, start: int | None, end: int | None
+                    ) -> None:
+        self.damage.append(_Damage(offset, reason, start, end))
+
+    def _records(self, offset: int, records: list) -> Iterator[tuple[str, int, bytes]]:
+        for record in records:
+            if isinstance(record, Message):
+                channel = self.channels.get(record.channel_id)
+                if channel is not None:
+                    yield channel.topic, record.log_time, record.data
+                else:
+                    lost = self._lost_channels.setdefault(
+                        record.channel_id, [offset, record.log_time, record.log_time])
+                    lost[1] = min(lost[1], record.log_time)
+                    lost[2] = max(lost[2], record.log_time)
+            elif isinstance(record, Channel):
+                self.channels.setdefault(record.id, record)
+            else:
+                self.schemas.setdefault(record.id, record)
+
+    # -- after reading -----------------------------------------------------------------------
+
+    def topics(self) -> list[tuple[str, str]]:
+        """(topic, schema name) of each channel, in channel id order."""
+        out = []
+        for key in sorted(self.channels):
+            channel = self.channels[key]
+            schema = self.schemas.get(channel.schema_id)
+            out.append((channel.topic, schema.name if schema is not None else '?'))
+        return out
+
+    def report(self, origin_ns: int) -> list[str]:
+        """One line per damaged record: which frames (simulated time range) or what else was
+        lost, and where."""
+        lines = []
+        for channel, (offset, t0, t1) in sorted(self._lost_channels.items()):
+            self.damage.append(_Damage(offset, f'messages of channel {channel}, whose '
+                                       'definition was lost', t0, t1))
+        for d in sorted(self.damage, key=lambda d: d.offset):
+            where = f'{d.what} at byte {d.offset}: {d.reason}'
+            if d.what == 'metadata':
+                lines.append(f'{self.path}: metadata lost ({where})')
+                continue
+            start, end = d.start_ns, d.end_ns
+            if start is not None and end is not None and origin_ns <= start <= end:
+                span = (f'frames from t={_seconds(start - origin_ns)} to '
+                        f't={_seconds(end - origin_ns)} s')
+            else:
+                # times unknown (the chunk's header is damaged too): the good neighbours'
+                before = [e for o, _, e in self._good if o < d.offset]
+                after = [s for o, s, _ in self._good if o > d.offset]
+                span = ((f'frames after t={_seconds(before[-1] - origin_ns)} s' if before
+                         else 'frames from the start')
+                        + (f' and before t={_seconds(after[0] - origin_ns)} s' if after
+                           else ' to the end'))
+            lines.append(f'{self.path}: {span} lost ({where})')
+        return lines
+
+
+def _chunk_times(body: bytes) -> tuple[int | None, int | None]:
+    """The (start, end) log times a chunk record's header gives, None where unreadable."""
+    if len(body) < 16:
+        return None, None
+    start, end = struct.unpack_from('<QQ', body)
+    return (start, end) if start <= end else (None, None)
+
+
+def _seconds(t_ns: int) -> str:
+    return f'{t_ns / 1e9:.3f}'
+
+
+# The scene parser checks each distinct outline in O(n^2) time (0.7 s for one of
+# MAX_POLYGON_VERTICES vertices on the 2-core machine) and each body against the others (0.7 s
+# for a thousand); within MAX_FILE_BYTES a log's scene_json could ask for minutes of that. A
+# replay takes a scene whose checks fit in about two seconds; beyond, it draws part origins.
+_SCENE_VERTEX_PAIRS = 2 * MAX_POLYGON_VERTICES ** 2
+_SCENE_BODIES = 1000
+
+
+def _scene_cost(data) -> tuple[int, int]:
+    """(bodies, vertex pairs of the distinct outlines) the scene parser would check."""
+    bodies = data.get('bodies') if isinstance(data, dict) else None
+    if not isinstance(bodies, list):
+        return 0, 0
+    seen: set[str] = set()
+    pairs = 0
+    for body in bodies:
+        if not isinstance(body, dict):
+            continue
+        pieces = body.get('polygons')
+        for shape in [body.get('polygon'), *(pieces if isinstance(pieces, list) else ())]:
+            if isinstance(shape, list):
+                key = json.dumps(shape)
+                if key not in seen:
+                    seen.add(key)
+                    pairs += len(shape) ** 2
+    return len(bodies), pairs
+
+
+def _parse_scene_json(text: str, source: str) -> Scene:
+    """The scene a log stores, within the scene files' limits (size, nesting) and the
+    replay's budget for checking it; SceneError otherwise."""
+    if len(text) > MAX_FILE_BYTES or len(text.encode('utf-8', 'replace')) > MAX_FILE_BYTES:
+        raise SceneError(f'{len(text.encode("utf-8", "replace")) / 2 ** 20:.1f} MiB; scenes are '
+                         f'limited to {MAX_FILE_BYTES / 2 ** 20:.0f} MiB as scene files are',
+                         source=source)
+    try:
+        data = json.loads(text)
+    except RecursionError:
+        raise SceneError(f'nested deeper than {MAX_NESTING} levels', source=source) from None
+    except json.JSONDecodeError as err:
+        raise SceneError(f'not JSON ({err.msg} at character {err.pos})', source=source) from None
+    _check_nesting(data, source)
+    bodies, pairs = _scene_cost(data)
+    if bodies > _SCENE_BODIES or pairs > _SCENE_VERTEX_PAIRS:
+        raise SceneError(f'{bodies} bodies with {pairs} vertex pairs in distinct outlines; a '
+                         f'replay checks at most {_SCENE_BODIES} bodies and {_SCENE_VERTEX_PAIRS} '
+                         'pairs (about two seconds): drawing part origins instead', source=source)
+    return parse_scene(data, source=source)
 
 
 def _scene_from(metadata: dict[str, str], path: Path) -> Scene | None:
@@ -196,8 +611,8 @@ def _scene_from(metadata: dict[str, str], path: Path) -> Scene | None:
     if not text:
         return None
     try:
-        return parse_scene(json.loads(text), source=f'{path}:scene_json')
-    except ValueError as err:  # json errors and SceneError are ValueErrors
+        return _parse_scene_json(text, f'{path}:scene_json')
+    except ValueError as err:  # SceneError is a ValueError
         log.warning('%s: ignoring the scene stored in the log: %s', path, err)
         return None
 
@@ -370,55 +785,90 @@ class _Decoder:
         return np.asarray(m.data, float)
 
 
-def _messages(path: Path) -> Iterator[tuple[str, int, object]]:
+def _messages(reader: _LogReader) -> Iterator[tuple[str, int, object]]:
     """(topic, time ns, decoded message) of the topics the replay uses (the sensors': see
     :func:`_sensor_value`); undecodable messages are skipped with one warning per topic
     (foreign logs may use other layouts)."""
     decode = _Decoder()
     failed: set[str] = set()
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter('always')
-        for topic, t_ns, data in read_messages(path):
-            sensor = topic.startswith(SENSOR_PREFIX)
-            if not sensor and topic not in _Decoder.TOPICS:
-                continue
-            try:
-                message = _sensor_value(topic, data) if sensor else decode(topic, data)
-            except Exception as err:  # noqa: BLE001 - skip what this replay cannot read
-                if topic not in failed:
-                    failed.add(topic)
-                    log.warning('%s: skipping %s messages that cannot be decoded (%s)',
-                                path, topic, err)
-                continue
-            yield topic, t_ns, message
-    for warning in caught:  # e.g. "stopped reading at a damaged record"
-        log.warning('%s', warning.message)
+    for topic, t_ns, data in reader.messages():
+        sensor = topic.startswith(SENSOR_PREFIX)
+        if not sensor and topic not in _Decoder.TOPICS:
+            continue
+        try:
+            message = _sensor_value(topic, data) if sensor else decode(topic, data)
+        except Exception as err:  # noqa: BLE001 - skip what this replay cannot read
+            if topic not in failed:
+                failed.add(topic)
+                log.warning('%s: skipping %s messages that cannot be decoded (%s)',
+                            reader.path, topic, err)
+            continue
+        yield topic, t_ns, message
 
 
-def _finalized(path: Path) -> bool:
-    """Whether the log ends in the MCAP magic after its footer (its writer finished it)."""
-    with open(path, 'rb') as stream:
-        size = os.fstat(stream.fileno()).st_size
-        if size < 2 * len(_MCAP_MAGIC):
-            return False
-        stream.seek(size - len(_MCAP_MAGIC))
-        return stream.read() == _MCAP_MAGIC
+# Metadata values longer than this are not names or numbers feeder_sim wrote.
+_MAX_NAME_CHARS = 200
+_MAX_TIME_NS = 2 ** 63 - 1
 
 
-def _read_log(path: Path) -> _Log:
-    _check_mcap(path)
-    finished = _finalized(path)
-    records = _read_metadata(path)
-    metadata = records.get('feeder_sim', {})
+def _metadata_int(path: Path, field: str, value: str, lo: int, what: str) -> int:
+    text = value.strip()
+    if not (text.lstrip('+-').isascii() and text.lstrip('+-').isdigit() and len(text) <= 20
+            and lo <= int(text) <= _MAX_TIME_NS):
+        raise ValueError(f"{path}: metadata '{field}': expected an integer, {what} from {lo}, "
+                         f'got {value[:40]!r}; the log was not written by feeder_sim or its '
+                         'metadata is damaged')
+    return int(text)
+
+
+def _checked_metadata(path: Path, records: dict[str, dict[str, str]]
+                      ) -> tuple[dict[str, str], int, np.ndarray]:
+    """The ``feeder_sim`` metadata record, the log time (ns) simulated time counts from, and
+    the simulated times (ns) at which episodes 1, 2, ... start; every value the replay uses
+    is checked, a bad one is a ValueError naming it."""
+    metadata = dict(records.get('feeder_sim', {}))
+    for key in ('scene', 'method', 'feeder_sim'):
+        value = metadata.get(key, '')
+        if len(value) > _MAX_NAME_CHARS or not value.isprintable():
+            raise ValueError(f"{path}: metadata '{key}': expected a name of at most "
+                             f'{_MAX_NAME_CHARS} printable characters, got {value[:40]!r}')
     # log times count simulated time from this wall-clock instant (0: from the epoch)
-    origin = int(metadata.get('log_time_origin_ns', 0))
-    episode_starts = np.sort(np.array(
-        [int(m.get('log_time_ns', 0)) - origin for name, m in records.items()
-         if name.startswith('episode_')], np.int64))
+    origin = _metadata_int(path, 'log_time_origin_ns', metadata.get('log_time_origin_ns', '0'),
+                           0, 'ns since the Unix epoch')
+    starts = [_metadata_int(path, f'{name}.log_time_ns', m.get('log_time_ns', ''), origin,
+                            'the log time in ns at which the episode starts,')
+              for name, m in records.items() if name.startswith('episode_')]
+    return metadata, origin, np.sort(np.array(starts, np.int64)) - origin
+
+
+def _feeder_sim_topic(topic: str) -> bool:
+    return topic in _Decoder.TOPICS or topic.startswith(SENSOR_PREFIX)
+
+
+def _not_feeder_sim(path: Path, topics: list[tuple[str, str]]) -> str:
+    """The line saying that a log holds nothing the replay can draw, and what it holds."""
+    shown = ', '.join(f'{topic} ({schema})' for topic, schema in topics[:4])
+    more = f' and {len(topics) - 4} more' if len(topics) > 4 else ''
+    held = f'its topics are {shown}{more}' if topics else 'it has no topics'
+    return (f'{path}: not a feeder_sim log: no feeder_sim metadata and none of the topics '
+            f'the replay draws ({", ".join(_Decoder.TOPICS)}, {SENSOR_PREFIX}*); {held}, so '
+            f'a replay would show nothing: open it with `rerun {path}` instead')
+
+
+def _read_log(path: Path, allow_damaged: bool = False) -> _Log:
+    """The log's frames as arrays. Raises DamagedLogError for records that cannot be read
+    (unless ``allow_damaged``: then each is one warning), ValueError for a log that is not
+    feeder_sim's or metadata that is not what feeder_sim writes."""
+    _check_mcap(path)
+    reader = _LogReader(path)
+    records = reader.metadata()
+    metadata, origin, episode_starts = _checked_metadata(path, records)
+    # before the frames are read: a hostile scene is refused in a fraction of a second
+    scene = _scene_from(metadata, path)
     poses, contacts, track, vibration = [], [], [], []
     sensors: dict[str, list] = {}
     end_t = 0
-    for topic, t_ns, message in _messages(path):
+    for topic, t_ns, message in _messages(reader):
         t_ns -= origin
         if topic.startswith(SENSOR_PREFIX):
             if message is not None:
@@ -433,7 +883,19 @@ def _read_log(path: Path) -> _Log:
             track.append((t_ns, *message))
         elif len(message) >= 2:
             vibration.append((t_ns, message[:2]))
-    if not finished:
+    damage = reader.report(origin)
+    if damage and not allow_damaged:
+        raise DamagedLogError(damage)
+    for line in damage:
+        log.warning('%s', line)
+    if reader.summary_damaged:
+        log.warning('%s: the summary at the end of the log is damaged; read the records '
+                    'one by one instead', path)
+    topics = reader.topics()
+    if not damage and 'feeder_sim' not in records and not any(
+            _feeder_sim_topic(topic) for topic, _ in topics):
+        raise ValueError(_not_feeder_sim(path, topics))
+    if reader.truncated or not reader.finished:
         log.warning('%s: the log ends without its footer (its writer stopped before finishing '
                     'it); replaying the %d frames up to its last whole record', path, len(poses))
     # Stable sorts by time: files are in time order unless chunks were written out of order.
@@ -443,7 +905,7 @@ def _read_log(path: Path) -> _Log:
     for samples in sensors.values():
         samples.sort(key=lambda m: m[0])
     return _Log(
-        path=path, metadata=metadata, scene=_scene_from(metadata, path),
+        path=path, metadata=metadata, scene=scene,
         pose_t=np.array([m[0] for m in poses], np.int64),
         pose_count=np.array([len(m[1]) for m in poses], np.int64),
         origin=_concat([m[1] for m in poses], (0, 2)),
@@ -525,11 +987,25 @@ def _parts(scene: Scene | None) -> list:
 def part_size(scene: Scene | None) -> float:
     """Characteristic part size (m): the median over the dynamic bodies of their largest
     vertex-to-vertex distance; :data:`DEFAULT_PART_SIZE_M` without a scene."""
-    sizes = []
-    for body in _parts(scene):
-        v = np.concatenate(body.outlines)
-        sizes.append(float(np.max(np.linalg.norm(v[:, None] - v[None], axis=-1))))
+    sizes = [_diameter(np.concatenate(body.outlines)) for body in _parts(scene)]
     return float(np.median(sizes)) if sizes else DEFAULT_PART_SIZE_M
+
+
+# Up to this many vertices the diameter is the largest of all pairwise distances; beyond, the
+# largest extent over this many directions (a relative error below 1e-6), so that a body of
+# many large pieces costs milliseconds and no quadratic memory.
+_DIAMETER_PAIRS_UP_TO = 2000
+
+
+def _diameter(v: np.ndarray) -> float:
+    if len(v) <= _DIAMETER_PAIRS_UP_TO:
+        return float(pdist(v).max()) if len(v) > 1 else 0.0
+    angle = np.linspace(0.0, math.pi, _DIAMETER_PAIRS_UP_TO, endpoint=False)
+    extent = 0.0
+    for block in np.array_split(angle, 8):
+        along = v @ np.stack([np.cos(block), np.sin(block)])
+        extent = max(extent, float((along.max(0) - along.min(0)).max()))
+    return extent
 
 
 def impulse_scale(contacts: np.ndarray, size_m: float) -> tuple[float, float]:
@@ -862,7 +1338,7 @@ def _write_rrd(log_: _Log, rrd: Path) -> None:
     # Only simulated time matters; the wall clock of the conversion would be noise.
     rec.set_log_time_enabled(False)
     rec.set_log_tick_enabled(False)
-    partial = rrd.with_name(rrd.name + '.part')
+    partial = _partial(rrd)
     try:
         rec.save(partial)
     except RuntimeError as err:  # rerun reports file errors as RuntimeError
@@ -912,21 +1388,51 @@ def _open_viewer(rrd: Path) -> None:
                      start_new_session=True)
 
 
+def _check_output(rrd: Path) -> None:
+    """Refuse an output that exists and is not a regular file (a FIFO would block the
+    conversion or take the recording; a device or socket is not a place for it), and the
+    temporary file beside it likewise."""
+    for path in (rrd, _partial(rrd)):
+        try:
+            mode = path.stat().st_mode
+        except FileNotFoundError:
+            continue
+        except OSError as err:
+            raise ValueError(f'{path}: cannot check the output ({err.strerror})') from None
+        if not stat.S_ISREG(mode):
+            kind = ('a directory' if stat.S_ISDIR(mode) else 'a FIFO' if stat.S_ISFIFO(mode)
+                    else 'a socket' if stat.S_ISSOCK(mode) else 'a device')
+            raise ValueError(f'{path}: is {kind}, not a regular file; name a new file (or a '
+                             'regular file to replace) for the recording')
+
+
+def _partial(rrd: Path) -> Path:
+    return rrd.with_name(rrd.name + '.part')
+
+
 def replay(mcap_path: str | os.PathLike, rrd_path: str | os.PathLike | None = None, *,
-           spawn: bool | None = None) -> Path:
+           spawn: bool | None = None, allow_damaged: bool = False) -> Path:
     """Convert the MCAP log ``mcap_path`` to a rerun recording and return the ``.rrd`` path.
 
     ``rrd_path`` defaults to the log's path with the suffix ``.rrd``; its directory is
-    created. ``spawn``: True opens the viewer on the written file, False only writes, None
+    created; an existing one that is not a regular file (a FIFO, a directory, a device) is
+    refused. ``spawn``: True opens the viewer on the written file, False only writes, None
     opens it when a display is available ($DISPLAY or $WAYLAND_DISPLAY). The recording has
-    application id ``feeder_sim`` and a recording id derived from the log's bytes. Raises
-    ``OSError`` or ``ValueError`` (naming the file) for a missing or non-MCAP file.
+    application id ``feeder_sim`` and a recording id derived from the log's bytes.
+
+    Raises ``OSError`` or ``ValueError`` (naming the file) for a missing or non-MCAP file, a
+    log that holds nothing of feeder_sim's, or metadata feeder_sim does not write; and
+    :class:`DamagedLogError` (a ValueError; one line per damaged record, with the simulated
+    time range it held) when chunks fail their CRC or records cannot be read, unless
+    ``allow_damaged``: then the rest is replayed and each line is a warning. A log cut short
+    by a killed writer is not damaged: it is replayed up to its last whole record.
     """
     source = Path(mcap_path)
     rrd = Path(rrd_path) if rrd_path is not None else source.with_suffix('.rrd')
     if rrd.exists() and rrd.resolve() == source.resolve():
         raise ValueError(f'{rrd}: the recording would overwrite the log')
-    log_ = _read_log(source)
+    _check_output(rrd)
+    log_ = _read_log(source, allow_damaged)
     rrd.parent.mkdir(parents=True, exist_ok=True)
     _write_rrd(log_, rrd)
     if spawn or (spawn is None and _display_available()):
