@@ -824,6 +824,110 @@ def solve_small_inline(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_
     return res, work, codes
 
 
+@jit
+def stop_within_step(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia,
+                     box, slip, sliding, mu_s, mu_d, x_n, x_t, w_t, b_n, b_t, mu_lo, mu_hi,
+                     offset, remain):
+    """:func:`stop_within_step_inline` for Python callers."""
+    return stop_within_step_inline(ar, select, starts, a, b, normal, tangent, r_a, r_b,
+                                   inv_mass, inv_inertia, box, slip, sliding, mu_s, mu_d, x_n,
+                                   x_t, w_t, b_n, b_t, mu_lo, mu_hi, offset, remain)
+
+
+@inner(machine_inline=True)
+def stop_within_step_inline(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass,
+                            inv_inertia, box, slip, sliding, mu_s, mu_d, x_n, x_t, w_t, b_n, b_t,
+                            mu_lo, mu_hi, offset, remain):
+    """Coulomb's law over a step for the contacts whose slip stops within it.
+
+    A contact that slides into the step (pre-step slip ``slip``, m/s, with ``sliding``) with
+    a friction row is held by ``mu_d`` against its slip until the slip reaches zero, and only
+    from that instant on by the static law. The step's first answer (``x_n``, ``x_t`` in N s,
+    end slip ``w_t``) tells where that happens: with the contact's friction held at
+    ``-sigma mu_d x_n`` for the whole step, its end slip would be ``u_1 = w_t + (W d)_T`` with
+    ``d = -sigma mu_d x_n - x_t`` on the friction rows of the island's sliding contacts (``W``
+    the Delassus matrix: two corners of one box slip as one and stop at one instant; each with
+    its own Delassus entry alone, the stop came out at twice its time); where ``u_1`` has the
+    other sign the
+    slip, falling linearly over the step, stops at the fraction ``phi = u_0 / (u_0 - u_1)``.
+    Its impulse is then ``-sigma mu_d phi x_n`` (the slide, written to ``offset`` and added
+    to the island's free velocities ``b_n`` / ``b_t`` as an applied impulse) plus what the
+    rest of the step gives from rest: bounds ``mu_s (1 - phi)`` on both sides (``mu_lo`` /
+    ``mu_hi``; ``remain`` = 1 - phi), which become one-sided ``mu_d (1 - phi)`` where it
+    cannot hold (the second pass). With the hold side alone (``mu_s`` for the whole step) a
+    slip that reverses at a drive's turning point was held for the rest of the step, and
+    conveying at 100 steps per period came out at up to 1.5 times its speed.
+
+    Islands with ``select`` only; contacts with ``remain < 1`` are left as they are (a stop
+    is taken once a step). Returns per island whether it must be solved again."""
+    n_isl = starts.shape[0] - 1
+    c = a.shape[0]
+    redo = full_b(ar, n_isl, False)
+    # the sliding contacts' friction held at -sigma mu_d x_n, all at once: contacts of one
+    # body slip together, so each one's end slip depends on the others' friction too
+    change = zeros_f(ar, c)
+    any_sliding = False
+    for isl in range(n_isl):
+        if not select[isl]:
+            continue
+        for q in range(starts[isl], starts[isl + 1]):
+            if box[q] and sliding[q] and x_n[q] > 0.0 and remain[q] == 1.0:
+                sigma = 1.0 if slip[q] > 0.0 else -1.0
+                change[q] = -sigma * mu_d[q] * x_n[q] - x_t[q]
+                any_sliding = True
+    if not any_sliding:
+        return redo
+    ja, jb, ma, mb = _rows(ar, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia)
+    dv = zeros_f2(ar, inv_mass.shape[0], 3)
+    _add_tangent_impulses(n_isl, select, starts, a, b, ma, mb, c, change, dv)
+    any_redo = False
+    for isl in range(n_isl):
+        if not select[isl]:
+            continue
+        for q in range(starts[isl], starts[isl + 1]):
+            if not (box[q] and sliding[q] and x_n[q] > 0.0 and remain[q] == 1.0):
+                continue
+            u0 = slip[q]
+            sigma = 1.0 if u0 > 0.0 else -1.0
+            u1 = _row_w(c + q, q, a, b, ja, jb, dv, w_t[q])
+            if sigma * u1 >= 0.0:
+                continue        # it slides through the step
+            phi = u0 / (u0 - u1)
+            offset[q] = -sigma * mu_d[q] * phi * x_n[q]
+            remain[q] = 1.0 - phi
+            mu_lo[q] = mu_s[q] * remain[q]
+            mu_hi[q] = mu_lo[q]
+            redo[isl] = True
+            any_redo = True
+    if not any_redo:
+        return redo
+    for i in range(dv.shape[0]):
+        for j in range(3):
+            dv[i, j] = 0.0
+    _add_tangent_impulses(n_isl, redo, starts, a, b, ma, mb, c, offset, dv)
+    for isl in range(n_isl):
+        if not redo[isl]:
+            continue
+        for q in range(starts[isl], starts[isl + 1]):
+            b_n[q] = _row_w(q, q, a, b, ja, jb, dv, b_n[q])
+            b_t[q] = _row_w(c + q, q, a, b, ja, jb, dv, b_t[q])
+    return redo
+
+
+@inner
+def _add_tangent_impulses(n_isl, select, starts, a, b, ma, mb, c, p, dv):
+    """``dv += M^-1 J_T^T p`` for the tangent impulses ``p`` of the islands with ``select``."""
+    for isl in range(n_isl):
+        if not select[isl]:
+            continue
+        for q in range(starts[isl], starts[isl + 1]):
+            if p[q] != 0.0:
+                ia, ib = a[q], b[q]
+                for j in range(3):
+                    dv[ia, j] += ma[c + q, j] * p[q]
+                    dv[ib, j] += mb[c + q, j] * p[q]
+
+
 @inner(inline='always')
 def _push_all(dv, dv0, P, R, k, ia, ib, col, d):
     """``_push`` into the velocities, their last snapshot and the direction alike."""
