@@ -67,6 +67,7 @@ from feeder_sim.contact._island_kernels import (
     _contact_velocity,
     any_kept_inline,
     apply_impulses_inline,
+    breakaway_within_step_inline,
     contact_rows_inline,
     drift_inline,
     feature_gaps_inline,
@@ -419,14 +420,16 @@ def _record_batch(ints, floats, sel, rows, work, res, converged):
 
 @inner(machine_inline=True)
 def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b_t, box, mu_lo,
-           mu_hi, mu_s, mu_d, slip, at, point, order, todo, warm, st, ints, floats, msgs, n_msgs):
+           mu_hi, mu_s, mu_d, slip, half_vel, half_om, at, point, order, todo, warm, st, ints,
+           floats, msgs, n_msgs):
     """``TimeStepper._solve`` (arrays in island order; ``at``: each contact's place in the
     previous step's ``warm``, -1 where new; ``point``: the contact points in the step's
     order, which ``order`` maps to island order; PGS sweeps a pile bottom-up by them): the
     impulses and the row states of the small
     islands' answers, or ``ok`` False where the compiled Dantzig missed ``lcp_tol`` (the
-    reference step takes over). ``slip``: the pre-step slip of each contact (m/s), for
-    ``stop_within_step``."""
+    reference step takes over). ``slip``: the pre-step slip of each contact (m/s), and
+    ``half_vel`` / ``half_om`` the bodies' free velocities at mid-step, for
+    ``stop_within_step`` and ``breakaway_within_step``."""
     k = a.shape[0]
     n_isl = starts.shape[0] - 1
     lens = empty_i(ar, n_isl)
@@ -471,6 +474,7 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
     v_t_new = zeros_f(ar, k)
     ones = full_b(ar, n_isl, True)
     offset = zeros_f(ar, k)
+    v_t_end = copy_f(ar, b_t)       # the free end slip, before a stop's impulse shifts b_t
     remain = empty_f(ar, k)
     for q in range(k):
         remain[q] = 1.0
@@ -510,8 +514,8 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
         if attempt == 0 and any_sliding:
             redo = stop_within_step_inline(ar, small, starts, a, b, normal, tangent, r_a, r_b,
                                            bodies.inv_mass, bodies.inv_inertia, box, slip,
-                                           sliding, mu_s, mu_d, x_n, x_t, v_t_new, b_n, b_t,
-                                           lo, hi, offset, remain)
+                                           sliding, half_vel, half_om, mu_s, mu_d, x_n, x_t,
+                                           v_t_new, b_n, b_t, lo, hi, offset, remain)
         else:
             redo = full_b(ar, n_isl, False)
         # dynamics.second_pass: after the first answer on the bounds friction_rows set, after
@@ -538,6 +542,13 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
                 elif lo[q] == mu_s[q] and lo[q] > 0 and limit_lo and v > st.slip_tol_mps:
                     lo[q] = 0.0
                     redo[i] = True
+        # a static contact that holds on average but not throughout its part of the step
+        if any_sliding or attempt == 0:
+            late = breakaway_within_step_inline(ar, small, starts, a, b, normal, r_a, r_b, box,
+                                                slip, half_vel, half_om, v_t_end, mu_s, mu_d,
+                                                x_n, x_t, lo, hi, remain, attempt == 1)
+            for i in range(n_isl):
+                redo[i] = redo[i] or late[i]
         for i in range(n_isl):
             any_saturated = any_saturated or redo[i]
         if not any_saturated:
@@ -797,12 +808,18 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
         normal_o, tangent_o = gather_rows(ar, normal, order), gather_rows(ar, tangent, order)
         r_a_o, r_b_o = gather_rows(ar, r_a, order), gather_rows(ar, r_b, order)
         if n_neg:
+            # the bodies' free velocities at mid-step (the friction law's time course)
+            half_vel = copy_f2(ar, mid_vel)
+            for i in range(n):
+                if dynamic[i]:
+                    for j in range(2):
+                        half_vel[i, j] = half_vel[i, j] + half * bodies.gravity[j]
             x_n, x_t, states, ok_solve = _solve(
                 ar, n, starts, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o, bodies, b_no,
                 gather(ar, v_t_free, order), gather(ar, box, order), gather(ar, mu_lo, order),
                 gather(ar, mu_hi, order), gather(ar, mu_s, order), gather(ar, mu_d, order),
-                gather(ar, v_t_pre, order), gather(ar, at, order), point, order, neg, warm, st,
-                step_ints, step_floats,
+                gather(ar, v_t_pre, order), half_vel, om, gather(ar, at, order), point, order,
+                neg, warm, st, step_ints, step_floats,
                 msgs, step_msgs)
             if not ok_solve:
                 return REFERENCE, warm, approach

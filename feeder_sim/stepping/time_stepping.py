@@ -245,8 +245,9 @@ def solve_impulses(world: World, cs: ContactSet, bodies: np.ndarray, b_n: np.nda
                 heap_state(), np.ones(1, bool), np.array([0, c]), contacts.body_a,
                 contacts.body_b, np.ascontiguousarray(contacts.normal), cs.tangent, cs.r_a,
                 cs.r_b, world.inv_mass, world.inv_inertia, box, np.ascontiguousarray(v_t_pre),
-                sliding, cs.mu_static, cs.mu_dynamic, impulse[:c].copy(), impulse[c:].copy(),
-                v_t_new, b_n, b_t, mu_lo, mu_hi, offset, remain)[0]
+                sliding, np.zeros((0, 2)), np.zeros(0), cs.mu_static, cs.mu_dynamic,
+                impulse[:c].copy(), impulse[c:].copy(), v_t_new, b_n, b_t, mu_lo, mu_hi, offset,
+                remain)[0]
         saturated, mu_lo, mu_hi = second_pass(mu_lo, mu_hi, impulse[:c], impulse[c:], v_t_new,
                                               cs.mu_static, cs.mu_dynamic,
                                               may_slide & ((remain < 1.0) == attempt),
@@ -839,9 +840,12 @@ class TimeStepper(StepperBase):
         neg = np.minimum.reduceat(b_no, starts[:-1]) < 0.0
         stats.record_trivial(n_isl - int(np.count_nonzero(neg)))
         if neg.any():
+            # the bodies' free velocities at mid-step (the friction law's time course)
+            half_vel = mid.velocity.copy()
+            np.add(half_vel, 0.5 * h * w.gravity, out=half_vel, where=self._dyn_col)
             failed = self._solve(cs, geo, neg, b_no, v_t_free[order],
                                  box[order], mu_lo[order], mu_hi[order], v_t_pre[order],
-                                 keys[order], p_n, p_t, p_state)
+                                 half_vel, state.omega, keys[order], p_n, p_t, p_state)
             for i in failed:
                 # the numba Dantzig missed the tolerance: the reference path (lcp.solve's
                 # whole ladder) solves the island again
@@ -973,15 +977,17 @@ class TimeStepper(StepperBase):
                 float(gap.min(initial=np.inf)))
 
     def _solve(self, cs: ContactSet, geo: _IslandGeometry, todo, b_n, b_t, box, lo, hi, slip,
-               keys, p_n, p_t, p_state) -> np.ndarray:
+               half_vel, half_om, keys, p_n, p_t, p_state) -> np.ndarray:
         """Islands with ``todo`` (the non-trivial ones): small ones by the numba Dantzig
         (or in one piece on the row states they had), large ones by PGS. In small islands a
         slip that stops within the step is held by ``mu_d`` up to that instant and by the
         static law after it (``_island_kernels.stop_within_step``); then Kawachi's second
-        pass where a static bound saturated. Arrays b_n .. keys are in island order
-        (``order``; ``slip`` the pre-step slip, m/s). Writes p_n / p_t and the small islands'
-        row states p_state, and returns the islands whose Dantzig answer missed
-        ``lcp_tol``."""
+        pass where a static bound saturated, and a static contact that holds on average but
+        not throughout breaks away within the step (``breakaway_within_step``). Arrays b_n ..
+        slip and keys are in island order (``order``; ``slip`` the pre-step slip, m/s;
+        ``half_vel`` / ``half_om`` the bodies' free velocities at mid-step). Writes p_n / p_t
+        and the small islands' row states p_state, and returns the islands whose Dantzig
+        answer missed ``lcp_tol``."""
         w, st, stats = self.world, self.settings, self.stats
         order, starts = geo.order, geo.starts
         data = geo.kernel_args + (b_n, b_t, box)
@@ -1013,6 +1019,7 @@ class TimeStepper(StepperBase):
         sliding = box & (lo != hi) & small[isl]
         offset = np.zeros(len(keys))
         remain = np.ones(len(keys))
+        v_t_end = b_t.copy()        # the free end slip, before a stop's impulse shifts b_t
         for attempt in range(3):
             if small.any():
                 res, work, codes = K.solve_small(heap_state(), small, *data, lo, hi, x_n, x_t,
@@ -1045,8 +1052,8 @@ class TimeStepper(StepperBase):
                 break
             if attempt == 0 and sliding.any():
                 redo = K.stop_within_step(heap_state(), small & ~failed, *geo.kernel_args, box,
-                                          slip, sliding, mu_s, mu_d, x_n, x_t, v_t_new, b_n,
-                                          b_t, lo, hi, offset, remain)
+                                          slip, sliding, half_vel, half_om, mu_s, mu_d, x_n,
+                                          x_t, v_t_new, b_n, b_t, lo, hi, offset, remain)
             else:
                 redo = np.zeros(len(lens), bool)
             # after the first answer on friction_rows' bounds, after the second on the
@@ -1056,6 +1063,12 @@ class TimeStepper(StepperBase):
                                             may_slide & solved & ((remain < 1.0) == attempt),
                                             st.slip_tol_mps, remain)
             redo[isl[saturated]] = True
+            if sliding.any() or attempt == 0:
+                _, a, b, normal, _, r_a, r_b = geo.kernel_args[:7]
+                redo |= K.breakaway_within_step(
+                    heap_state(), small & ~failed, starts, a, b, normal, r_a, r_b, box, slip,
+                    half_vel, half_om, v_t_end, mu_s, mu_d, x_n, x_t, lo, hi, remain,
+                    attempt == 1)
             if not redo.any():
                 break
             small, large = small & redo, large & redo
