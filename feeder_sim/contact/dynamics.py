@@ -93,7 +93,7 @@ def friction_rows(cs: ContactSet, v_t: np.ndarray, colliding: np.ndarray, fricti
 
 def second_pass(lo: np.ndarray, hi: np.ndarray, x_n: np.ndarray, x_t: np.ndarray,
                 v_t_new: np.ndarray, mu_static: np.ndarray, mu_dynamic: np.ndarray,
-                may_slide: np.ndarray, slip_tol: float
+                may_slide: np.ndarray, slip_tol: float, remain: np.ndarray | float = 1.0
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Kawachi's second pass over a step's friction answer: ``(redo, lo, hi)``.
 
@@ -104,7 +104,9 @@ def second_pass(lo: np.ndarray, hi: np.ndarray, x_n: np.ndarray, x_t: np.ndarray
     allowed ``mu_static`` could not stick, and its holding side goes back to Kawachi's
     one-sided 0 (the friction of the step in which a slip reverses is then unbiased:
     ``friction_rows`` without ``restick``). ``may_slide``: contacts with a friction row and
-    ``mu_dynamic < mu_static`` (for the others a second pass changes nothing)."""
+    ``mu_dynamic < mu_static`` (for the others a second pass changes nothing). ``remain``:
+    the fraction of the step a contact's static law covers (below 1 where its slip stopped
+    within the step, ``_island_kernels.stop_within_step``), which scales its ``mu_dynamic``."""
     held = may_slide & (x_n > 0)
     limit_lo = x_t <= -lo * x_n * (1 - 1e-9)
     limit_hi = x_t >= hi * x_n * (1 - 1e-9)
@@ -112,8 +114,8 @@ def second_pass(lo: np.ndarray, hi: np.ndarray, x_n: np.ndarray, x_t: np.ndarray
         & (np.abs(v_t_new) > slip_tol)
     back_hi = held & ~static & (hi == mu_static) & (hi > 0) & limit_hi & (v_t_new < -slip_tol)
     back_lo = held & ~static & (lo == mu_static) & (lo > 0) & limit_lo & (v_t_new > slip_tol)
-    lo = np.where(static, np.where(v_t_new > 0, mu_dynamic, 0.0), lo)
-    hi = np.where(static, np.where(v_t_new < 0, mu_dynamic, 0.0), hi)
+    lo = np.where(static, np.where(v_t_new > 0, mu_dynamic * remain, 0.0), lo)
+    hi = np.where(static, np.where(v_t_new < 0, mu_dynamic * remain, 0.0), hi)
     hi = np.where(back_hi, 0.0, hi)
     lo = np.where(back_lo, 0.0, lo)
     return static | back_hi | back_lo, lo, hi

@@ -59,10 +59,16 @@ def conveyor(*, psi: float, mu: float, theta: float, gamma: float, frequency_hz:
              tolerance: float = 1e-9, part_size: tuple[float, float] = (0.02, 0.01),
              mass: float = 0.01, track_length: float = 2.0, n_parts: int = 1,
              spacing: float | None = None, friction_impulse: bool = True,
-             restitution: float = 0.0, walls: bool = False, name: str | None = None) -> dict:
+             restitution: float = 0.0, walls: bool = False, name: str | None = None,
+             mu_dynamic: float | None = None, start_with_track: bool = False) -> dict:
     """A straight track inclined at ``theta`` (rad, uphill toward +x) vibrating along a line at
     ``psi`` (rad) above the track surface, with ``n_parts`` boxes resting on it.
 
+    ``mu`` is the static friction and, unless ``mu_dynamic`` is given, the dynamic one too.
+    The parts start at rest in the world, while the track starts at its drive's largest
+    speed; ``start_with_track`` starts them moving with the track instead (the point-mass
+    reference's start: relative rest), which matters where nothing forgets the start (a part
+    that slides back and forth without ever sticking).
     ``time_step`` defaults to 1/400 of the vibration period for time stepping and to 1/16 of
     it (the largest step) for the event-driven method.
     """
@@ -71,13 +77,18 @@ def conveyor(*, psi: float, mu: float, theta: float, gamma: float, frequency_hz:
         time_step = period / 400 if method == 'time_stepping' else period / 16
     w, h = part_size
     c, s = math.cos(theta), math.sin(theta)
-    material = {'mu_static': mu, 'mu_dynamic': mu, 'restitution': restitution}
+    material = {'mu_static': mu, 'mu_dynamic': mu if mu_dynamic is None else mu_dynamic,
+                'restitution': restitution}
+    amplitude = conveyor_amplitude(gamma, psi, theta, frequency_hz)
+    # the drive's velocity at t = 0 (phase 0: its largest), along psi above the track
+    speed = amplitude * 2 * math.pi * frequency_hz if start_with_track else 0.0
+    part_velocity = [speed * math.cos(theta + psi), speed * math.sin(theta + psi), 0.0]
     bodies = [{
         'name': 'track', 'type': 'kinematic',
         'polygon': [[-track_length / 2, -0.01], [track_length / 2, -0.01],
                     [track_length / 2, 0.0], [-track_length / 2, 0.0]],
         'pose': [0.0, 0.0, theta], **material,
-        'vibration': {'amplitude': conveyor_amplitude(gamma, psi, theta, frequency_hz),
+        'vibration': {'amplitude': amplitude,
                       'frequency': frequency_hz, 'angle': psi, 'phase': 0.0},
     }]
     if walls:
@@ -94,7 +105,8 @@ def conveyor(*, psi: float, mu: float, theta: float, gamma: float, frequency_hz:
         u = x0 + i * spacing          # along the track
         bodies.append({'name': 'box' if n_parts == 1 else f'box_{i}', 'type': 'dynamic',
                        'polygon': box(w / 2, h / 2), 'mass': mass,
-                       'pose': [c * u - s * h / 2, s * u + c * h / 2, theta], **material})
+                       'pose': [c * u - s * h / 2, s * u + c * h / 2, theta],
+                       'velocity': list(part_velocity), **material})
     return {
         'name': name or f'conveyor_psi{math.degrees(psi):.0f}_mu{mu}_theta'
                         f'{math.degrees(theta):.0f}_gamma{gamma}',

@@ -229,6 +229,114 @@ CASES: dict[str, Case] = {c.key: c for c in (
 )}
 
 
+# --------------------------------------------------------------------------- slide regime
+@dataclass(frozen=True)
+class SlideRegime:
+    """A part conveyed without lift-off (``gamma`` < 1) with ``mu_s = ratio * mu_d``: angles
+    in degrees, the track at ``frequency_hz``. The part starts at rest relative to the track."""
+
+    psi_deg: float
+    theta_deg: float
+    ratio: float
+    gamma: float
+    frequency_hz: float
+    mu_d: float = 0.4
+
+    def __str__(self) -> str:
+        return (f'psi{self.psi_deg:g}_theta{self.theta_deg:g}_ratio{self.ratio:g}'
+                f'_gamma{self.gamma:g}_{self.frequency_hz:g}Hz')
+
+    def point(self) -> Conveyor:
+        return Conveyor(psi=math.radians(self.psi_deg), theta=math.radians(self.theta_deg),
+                        mu_s=self.ratio * self.mu_d, mu_k=self.mu_d, gamma=self.gamma,
+                        frequency_hz=self.frequency_hz, g=G)
+
+    def reference(self) -> float:
+        """The exact point mass's mean speed (m/s) over the cycles ``slide_speed`` measures."""
+        return mean_speed(self.point(), warmup_cycles=SLIDE_CYCLES[0],
+                          cycles=SLIDE_CYCLES[1])
+
+
+SLIDE_CYCLES = (20, 20)         # warm-up and measured vibration periods
+# Corners and middles of the slide regime (Gamma 0.2-0.95, psi 5-45 deg, theta 0-5 deg,
+# mu_s / mu_d 1-1.5, 25-100 Hz): one line each in slide_regime.png
+SLIDE_REGIMES = (
+    SlideRegime(5.0, 0.0, 1.5, 0.95, 25.0),
+    SlideRegime(10.0, 0.0, 1.25, 0.8, 50.0),
+    SlideRegime(5.0, 0.0, 1.5, 0.3, 50.0),
+    SlideRegime(20.0, 3.0, 1.5, 0.5, 50.0),
+    SlideRegime(45.0, 5.0, 1.5, 0.5, 25.0),
+    SlideRegime(30.0, 2.5, 1.0, 0.8, 100.0),
+    SlideRegime(15.0, 5.0, 1.25, 0.95, 100.0),
+    SlideRegime(45.0, 0.0, 1.0, 0.2, 25.0),
+    SlideRegime(15.0, 2.5, 1.5, 0.8, 50.0),
+)
+SLIDE_STEPS_PER_PERIOD = (100, 200, 400, 800, 1600)
+
+
+def slide_speed(regime: SlideRegime, method: str, time_step: float | None = None) -> float:
+    """Mean conveying speed (m/s) of the regime's box over ``SLIDE_CYCLES``' measured periods."""
+    f = regime.frequency_hz
+    sim = Simulator(build(conveyor(
+        psi=math.radians(regime.psi_deg), mu=regime.ratio * regime.mu_d,
+        mu_dynamic=regime.mu_d, theta=math.radians(regime.theta_deg), gamma=regime.gamma,
+        frequency_hz=f, method=method, time_step=time_step, part_size=PART, mass=MASS,
+        start_with_track=True)))
+    warm, cycles = SLIDE_CYCLES
+    sim.advance_to(warm / f)
+    mark = _track_coordinate(sim)
+    sim.advance_to((warm + cycles) / f)
+    return (_track_coordinate(sim) - mark) * f / cycles
+
+
+def run_slide_regime(out_dir: str | os.PathLike,
+                     steps_per_period: Sequence[int] = SLIDE_STEPS_PER_PERIOD,
+                     regimes: Sequence[SlideRegime] = SLIDE_REGIMES,
+                     progress: Callable[[str], None] | None = print) -> list[dict]:
+    """time_stepping's relative error in the mean conveying speed against steps per period,
+    per slide regime; writes ``slide_regime.json`` and ``slide_regime.png`` (with the
+    first-order bound ``2 (2 pi / N)``)."""
+    say = progress or (lambda _m: None)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for regime in regimes:
+        exact = regime.reference()
+        errors = {}
+        for n in steps_per_period:
+            speed = slide_speed(regime, 'time_stepping', 1.0 / (regime.frequency_hz * n))
+            errors[n] = abs(speed - exact) / abs(exact)
+        rows.append({'regime': str(regime), 'reference_mps': exact,
+                     'errors': {str(n): e for n, e in errors.items()}})
+        say(f'slide regime {regime}: reference {exact:.6g} m/s, relative error '
+            + ', '.join(f'N={n} {e:.2e}' for n, e in errors.items()))
+    (out / 'slide_regime.json').write_text(json.dumps(rows, indent=2) + '\n')
+    _plot_slide_regime(rows, steps_per_period, out / 'slide_regime.png')
+    return rows
+
+
+def _plot_slide_regime(rows: Sequence[dict], steps_per_period: Sequence[int],
+                       path: Path) -> None:
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 5.5))
+    n = np.asarray(steps_per_period, float)
+    for row in rows:
+        err = [max(ERROR_FLOOR, row['errors'][str(k)]) for k in steps_per_period]
+        ax.loglog(n, err, 'o-', ms=3, lw=1, label=row['regime'])
+    ax.loglog(n, 4 * math.pi / n, 'k--', lw=1.5, label='2 (2 pi / N): first-order bound')
+    ax.set_xlabel('time steps per vibration period N')
+    ax.set_ylabel('relative error of the mean conveying speed')
+    ax.set_title('time_stepping in the slide regime (Gamma < 1) against the exact point mass')
+    ax.grid(True, which='both', alpha=0.3)
+    ax.legend(fontsize=7, loc='upper left', bbox_to_anchor=(1.01, 1.0))
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 # --------------------------------------------------------------------------- pymunk peer
 def _pymunk_space(gravity, kinematic: bool):
     import pymunk
@@ -388,6 +496,10 @@ def run_accuracy(out_dir: str | os.PathLike, cases: Sequence[str] | None = None,
                             'tolerance': CASES[k].tolerance} for k in keys},
               'methods': wanted, 'rows': rows, 'misses': check(rows),
               'comparison': compare(rows)}
+    if cases is None and 'time_stepping' in wanted:
+        steps = SLIDE_STEPS_PER_PERIOD
+        result['slide_regime'] = run_slide_regime(
+            out, (steps[0], steps[-1]) if quick else steps, progress=progress)
     (out / 'accuracy.json').write_text(json.dumps(result, indent=2) + '\n')
     plot(rows, out / 'accuracy.png')
     say(table(rows))

@@ -67,6 +67,7 @@ from feeder_sim.contact._island_kernels import (
     _contact_velocity,
     any_kept_inline,
     apply_impulses_inline,
+    breakaway_within_step_inline,
     contact_rows_inline,
     drift_inline,
     feature_gaps_inline,
@@ -75,6 +76,7 @@ from feeder_sim.contact._island_kernels import (
     solve_pgs,
     solve_small_inline,
     speed_bounds_inline,
+    stop_within_step_inline,
 )
 from feeder_sim.model.vibration import DriveSegments, segment_motion
 
@@ -418,13 +420,16 @@ def _record_batch(ints, floats, sel, rows, work, res, converged):
 
 @inner(machine_inline=True)
 def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b_t, box, mu_lo,
-           mu_hi, mu_s, mu_d, at, point, order, todo, warm, st, ints, floats, msgs, n_msgs):
+           mu_hi, mu_s, mu_d, slip, half_vel, half_om, at, point, order, todo, warm, st, ints,
+           floats, msgs, n_msgs):
     """``TimeStepper._solve`` (arrays in island order; ``at``: each contact's place in the
     previous step's ``warm``, -1 where new; ``point``: the contact points in the step's
     order, which ``order`` maps to island order; PGS sweeps a pile bottom-up by them): the
     impulses and the row states of the small
     islands' answers, or ``ok`` False where the compiled Dantzig missed ``lcp_tol`` (the
-    reference step takes over)."""
+    reference step takes over). ``slip``: the pre-step slip of each contact (m/s), and
+    ``half_vel`` / ``half_om`` the bodies' free velocities at mid-step, for
+    ``stop_within_step`` and ``breakaway_within_step``."""
     k = a.shape[0]
     n_isl = starts.shape[0] - 1
     lens = empty_i(ar, n_isl)
@@ -446,10 +451,15 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
     # the order PGS sweeps a pile in: bottom-up; nothing to sort without a pile
     height = _heights(ar, point, order, bodies.gravity) if any_large else empty_f(ar, 0)
     may_slide = empty_b(ar, k)
+    sliding = empty_b(ar, k)
     any_slide = False
+    any_sliding = False
     for q in range(k):
         may_slide[q] = box[q] and mu_d[q] < mu_s[q]
         any_slide = any_slide or may_slide[q]
+        # friction_rows gives a contact sliding into the step one-sided bounds
+        sliding[q] = box[q] and mu_lo[q] != mu_hi[q] and small[isl[q]]
+        any_sliding = any_sliding or sliding[q]
     states_in = empty_i(ar, k)
     x_n, x_t = zeros_f(ar, k), zeros_f(ar, k)
     for q in range(k):
@@ -463,7 +473,12 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
     hi = copy_f(ar, mu_hi)
     v_t_new = zeros_f(ar, k)
     ones = full_b(ar, n_isl, True)
-    for again in (True, False):
+    offset = zeros_f(ar, k)
+    v_t_end = copy_f(ar, b_t)       # the free end slip, before a stop's impulse shifts b_t
+    remain = empty_f(ar, k)
+    for q in range(k):
+        remain[q] = 1.0
+    for attempt in range(3):
         if small.any():
             res, work, codes = solve_small_inline(
                 ar, small, starts, a, b, normal, tangent, r_a, r_b, bodies.inv_mass,
@@ -493,35 +508,57 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
                         n_msgs[0] += 1
             ints[I_PGS] += n_large
             floats[F_MAX_PGS_VRES] = _larger(floats[F_MAX_PGS_VRES], _nan_max(vres, large))
-        # dynamics.second_pass
-        if not (again and any_slide):
+        if attempt == 2:
             break
-        redo = full_b(ar, n_isl, False)
+        # a slip that stops within the step (small islands, first answer only)
+        if attempt == 0 and any_sliding:
+            redo = stop_within_step_inline(ar, small, starts, a, b, normal, tangent, r_a, r_b,
+                                           bodies.inv_mass, bodies.inv_inertia, box, slip,
+                                           sliding, half_vel, half_om, mu_s, mu_d, x_n, x_t,
+                                           v_t_new, b_n, b_t, lo, hi, offset, remain)
+        else:
+            redo = full_b(ar, n_isl, False)
+        # dynamics.second_pass: after the first answer on the bounds friction_rows set, after
+        # the second on the contacts that stopped within the step
         any_saturated = False
-        for q in range(k):
-            i = isl[q]
-            if not (may_slide[q] and x_n[q] > 0 and (small[i] or large[i])):
-                continue
-            limit_lo = x_t[q] <= -lo[q] * x_n[q] * (1 - 1e-9)
-            limit_hi = x_t[q] >= hi[q] * x_n[q] * (1 - 1e-9)
-            v = v_t_new[q]
-            if lo[q] == hi[q]:
-                if lo[q] > 0 and (limit_lo or limit_hi) and abs(v) > st.slip_tol_mps:
-                    lo[q] = mu_d[q] if v > 0 else 0.0
-                    hi[q] = mu_d[q] if v < 0 else 0.0
+        if any_slide:
+            for q in range(k):
+                i = isl[q]
+                if not (may_slide[q] and x_n[q] > 0 and (small[i] or large[i])):
+                    continue
+                if (remain[q] < 1.0) != (attempt == 1):
+                    continue
+                limit_lo = x_t[q] <= -lo[q] * x_n[q] * (1 - 1e-9)
+                limit_hi = x_t[q] >= hi[q] * x_n[q] * (1 - 1e-9)
+                v = v_t_new[q]
+                if lo[q] == hi[q]:
+                    if lo[q] > 0 and (limit_lo or limit_hi) and abs(v) > st.slip_tol_mps:
+                        lo[q] = mu_d[q] * remain[q] if v > 0 else 0.0
+                        hi[q] = mu_d[q] * remain[q] if v < 0 else 0.0
+                        redo[i] = True
+                elif hi[q] == mu_s[q] and hi[q] > 0 and limit_hi and v < -st.slip_tol_mps:
+                    hi[q] = 0.0
                     redo[i] = True
-            elif hi[q] == mu_s[q] and hi[q] > 0 and limit_hi and v < -st.slip_tol_mps:
-                hi[q] = 0.0
-                redo[i] = True
-            elif lo[q] == mu_s[q] and lo[q] > 0 and limit_lo and v > st.slip_tol_mps:
-                lo[q] = 0.0
-                redo[i] = True
+                elif lo[q] == mu_s[q] and lo[q] > 0 and limit_lo and v > st.slip_tol_mps:
+                    lo[q] = 0.0
+                    redo[i] = True
+        # a static contact that holds on average but not throughout its part of the step
+        if any_sliding or attempt == 0:
+            late = breakaway_within_step_inline(ar, small, starts, a, b, normal, r_a, r_b, box,
+                                                slip, half_vel, half_om, v_t_end, mu_s, mu_d,
+                                                x_n, x_t, lo, hi, remain, attempt == 1)
+            for i in range(n_isl):
+                redo[i] = redo[i] or late[i]
+        for i in range(n_isl):
             any_saturated = any_saturated or redo[i]
         if not any_saturated:
             break
         for i in range(n_isl):
             small[i] = small[i] and redo[i]
             large[i] = large[i] and redo[i]
+    for q in range(k):
+        if offset[q] != 0.0:
+            x_t[q] = x_t[q] + offset[q]
     return x_n, x_t, states, True
 
 
@@ -771,11 +808,18 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
         normal_o, tangent_o = gather_rows(ar, normal, order), gather_rows(ar, tangent, order)
         r_a_o, r_b_o = gather_rows(ar, r_a, order), gather_rows(ar, r_b, order)
         if n_neg:
+            # the bodies' free velocities at mid-step (the friction law's time course)
+            half_vel = copy_f2(ar, mid_vel)
+            for i in range(n):
+                if dynamic[i]:
+                    for j in range(2):
+                        half_vel[i, j] = half_vel[i, j] + half * bodies.gravity[j]
             x_n, x_t, states, ok_solve = _solve(
                 ar, n, starts, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o, bodies, b_no,
                 gather(ar, v_t_free, order), gather(ar, box, order), gather(ar, mu_lo, order),
                 gather(ar, mu_hi, order), gather(ar, mu_s, order), gather(ar, mu_d, order),
-                gather(ar, at, order), point, order, neg, warm, st, step_ints, step_floats,
+                gather(ar, v_t_pre, order), half_vel, om, gather(ar, at, order), point, order,
+                neg, warm, st, step_ints, step_floats,
                 msgs, step_msgs)
             if not ok_solve:
                 return REFERENCE, warm, approach

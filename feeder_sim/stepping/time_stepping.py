@@ -24,14 +24,19 @@ at 0.8 m/s).
 
 Friction follows Kawachi: static bounds ``mu_s p_N`` when the pre-step slip is zero; when it
 slides, a one-sided bound ``mu_d p_N`` against the slip. Gravity and the drives act during the
-step, so a slip can stop within it: where ``mu_s > mu_d`` the side that holds a contact once
-stopped is bounded by ``mu_s p_N``, so a part that comes to rest where static friction can
-hold it sticks from that step on (``dynamics.friction_rows(restick=True)``; with one-sided
-``mu_d`` the step would leave a reversed slip and ``mu_d`` would act from then on). Kawachi's
-second pass (``dynamics.second_pass``) solves an island again where a bound set by ``mu_s``
-was reached by a contact that slips at the end of the step: a static contact that saturates
-slides, one-sided with ``mu_d``; a sliding contact whose slip reverses although ``mu_s``
-could hold it is one-sided again, as without the holding side.
+step, so a slip can stop within it; Coulomb's law then holds it with ``mu_d`` up to that
+instant and by the static law after it. In islands solved by pivoting the first answer tells
+where the slip would stop (``_island_kernels.stop_within_step``: the slip falls linearly over
+the step); the step is solved again with the slide's impulse ``-sigma mu_d phi p_N`` applied
+and the rest of the step ``1 - phi`` under the static law from rest, so a slip that reverses
+at a drive's turning point slides on with ``mu_d`` the other way, and one that can be held
+sticks (``mu_s``, where ``mu_s > mu_d``). On that first answer the side that holds a contact
+once it has stopped is bounded by ``mu_s p_N`` (``dynamics.friction_rows(restick=True)``),
+which is also the law of piles (PGS islands). Kawachi's second pass
+(``dynamics.second_pass``) solves an island again where a static bound was reached by a
+contact that slips at the end of the step: it slides, one-sided with ``mu_d`` (times the
+part of the step after its stop); in piles a sliding contact whose slip reverses although
+``mu_s`` could hold it is one-sided again, as without the holding side.
 Constant-acceleration motion (a block sliding on an incline) is integrated exactly.
 
 Which solver serves which island
@@ -217,20 +222,39 @@ def solve_impulses(world: World, cs: ContactSet, bodies: np.ndarray, b_n: np.nda
     friction, mu_lo, mu_hi = friction_rows(
         cs, v_t_pre, colliding, friction_impulse,
         settings.slip_tol_mps if slip_tol is None else slip_tol, restick=True)
-    may_slide = (friction == BOX) & (cs.mu_dynamic < cs.mu_static)
+    box = friction == BOX
+    may_slide = box & (cs.mu_dynamic < cs.mu_static)
+    # the stop within the step as TimeStepper._solve takes it
+    c = cs.n
+    sliding = box & (mu_lo != mu_hi)
+    offset, remain = np.zeros(c), np.ones(c)
+    b_n, b_t = b_full[:c].copy(), b_full[c:].copy()
     impulse = None
-    for _ in range(2):
-        asm = assemble(W, b_full, friction, mu_lo, mu_hi)
+    for attempt in range(3):
+        asm = assemble(W, np.concatenate([b_n, b_t]), friction, mu_lo, mu_hi)
         result = lcp.solve(asm.problem, tol=settings.lcp_tol)
         stats.record(result)
         impulse = asm.full(result.x)
-        c = cs.n
-        v_t_new = v_t_free + (W @ impulse)[c:]
-        redo, mu_lo, mu_hi = second_pass(mu_lo, mu_hi, impulse[:c], impulse[c:], v_t_new,
-                                         cs.mu_static, cs.mu_dynamic, may_slide,
-                                         settings.slip_tol_mps)
-        if not redo.any():
+        v_t_new = b_t + (W @ impulse)[c:]
+        if attempt == 2:
             break
+        stopped = False
+        if attempt == 0 and sliding.any():
+            contacts = cs.contacts
+            stopped = K.stop_within_step(
+                heap_state(), np.ones(1, bool), np.array([0, c]), contacts.body_a,
+                contacts.body_b, np.ascontiguousarray(contacts.normal), cs.tangent, cs.r_a,
+                cs.r_b, world.inv_mass, world.inv_inertia, box, np.ascontiguousarray(v_t_pre),
+                sliding, np.zeros((0, 2)), np.zeros(0), cs.mu_static, cs.mu_dynamic,
+                impulse[:c].copy(), impulse[c:].copy(), v_t_new, b_n, b_t, mu_lo, mu_hi, offset,
+                remain)[0]
+        saturated, mu_lo, mu_hi = second_pass(mu_lo, mu_hi, impulse[:c], impulse[c:], v_t_new,
+                                              cs.mu_static, cs.mu_dynamic,
+                                              may_slide & ((remain < 1.0) == attempt),
+                                              settings.slip_tol_mps, remain)
+        if not (stopped or saturated.any()):
+            break
+    impulse[c:] += offset
     return impulse, jac.velocity_change(impulse)
 
 
@@ -816,9 +840,12 @@ class TimeStepper(StepperBase):
         neg = np.minimum.reduceat(b_no, starts[:-1]) < 0.0
         stats.record_trivial(n_isl - int(np.count_nonzero(neg)))
         if neg.any():
+            # the bodies' free velocities at mid-step (the friction law's time course)
+            half_vel = mid.velocity.copy()
+            np.add(half_vel, 0.5 * h * w.gravity, out=half_vel, where=self._dyn_col)
             failed = self._solve(cs, geo, neg, b_no, v_t_free[order],
-                                 box[order], mu_lo[order], mu_hi[order],
-                                 keys[order], p_n, p_t, p_state)
+                                 box[order], mu_lo[order], mu_hi[order], v_t_pre[order],
+                                 half_vel, state.omega, keys[order], p_n, p_t, p_state)
             for i in failed:
                 # the numba Dantzig missed the tolerance: the reference path (lcp.solve's
                 # whole ladder) solves the island again
@@ -949,13 +976,18 @@ class TimeStepper(StepperBase):
                 v_n_free, v_t_free, v_t_pre, pile, colliding, b_n, friction == BOX, mu_lo, mu_hi,
                 float(gap.min(initial=np.inf)))
 
-    def _solve(self, cs: ContactSet, geo: _IslandGeometry, todo, b_n, b_t, box, lo, hi, keys,
-               p_n, p_t, p_state) -> np.ndarray:
+    def _solve(self, cs: ContactSet, geo: _IslandGeometry, todo, b_n, b_t, box, lo, hi, slip,
+               half_vel, half_om, keys, p_n, p_t, p_state) -> np.ndarray:
         """Islands with ``todo`` (the non-trivial ones): small ones by the numba Dantzig
-        (or in one piece on the row states they had), large ones by PGS, each followed by
-        Kawachi's second pass where a static contact saturated. Arrays b_n .. keys are in
-        island order (``order``). Writes p_n / p_t and the small islands' row states
-        p_state, and returns the islands whose Dantzig answer missed ``lcp_tol``."""
+        (or in one piece on the row states they had), large ones by PGS. In small islands a
+        slip that stops within the step is held by ``mu_d`` up to that instant and by the
+        static law after it (``_island_kernels.stop_within_step``); then Kawachi's second
+        pass where a static bound saturated, and a static contact that holds on average but
+        not throughout breaks away within the step (``breakaway_within_step``). Arrays b_n ..
+        slip and keys are in island order (``order``; ``slip`` the pre-step slip, m/s;
+        ``half_vel`` / ``half_om`` the bodies' free velocities at mid-step). Writes p_n / p_t
+        and the small islands' row states p_state, and returns the islands whose Dantzig
+        answer missed ``lcp_tol``."""
         w, st, stats = self.world, self.settings, self.stats
         order, starts = geo.order, geo.starts
         data = geo.kernel_args + (b_n, b_t, box)
@@ -983,7 +1015,12 @@ class TimeStepper(StepperBase):
         states = np.full(len(keys), -1)
         v_t_new = np.zeros(len(b_n))
         failed = np.zeros(len(lens), bool)
-        for again in (True, False):
+        # friction_rows gives a contact sliding into the step one-sided bounds
+        sliding = box & (lo != hi) & small[isl]
+        offset = np.zeros(len(keys))
+        remain = np.ones(len(keys))
+        v_t_end = b_t.copy()        # the free end slip, before a stop's impulse shifts b_t
+        for attempt in range(3):
             if small.any():
                 res, work, codes = K.solve_small(heap_state(), small, *data, lo, hi, x_n, x_t,
                                                  v_t_new, states_in, states)
@@ -1011,16 +1048,31 @@ class TimeStepper(StepperBase):
                         stats.messages.append(
                             f'pgs: velocity residual {vres[i]:.3g} m/s (lcp residual '
                             f'{res[i]:.3g}) after {work[i]} sweeps ({rows[i]} rows)')
-            if not (again and may_slide.any()):
+            if attempt == 2:
                 break
+            if attempt == 0 and sliding.any():
+                redo = K.stop_within_step(heap_state(), small & ~failed, *geo.kernel_args, box,
+                                          slip, sliding, half_vel, half_om, mu_s, mu_d, x_n,
+                                          x_t, v_t_new, b_n, b_t, lo, hi, offset, remain)
+            else:
+                redo = np.zeros(len(lens), bool)
+            # after the first answer on friction_rows' bounds, after the second on the
+            # contacts that stopped within the step
             solved = (small | large)[isl] & ~failed[isl]
             saturated, lo, hi = second_pass(lo, hi, x_n, x_t, v_t_new, mu_s, mu_d,
-                                            may_slide & solved, st.slip_tol_mps)
-            if not saturated.any():
-                break
-            redo = np.zeros(len(lens), bool)
+                                            may_slide & solved & ((remain < 1.0) == attempt),
+                                            st.slip_tol_mps, remain)
             redo[isl[saturated]] = True
+            if sliding.any() or attempt == 0:
+                _, a, b, normal, _, r_a, r_b = geo.kernel_args[:7]
+                redo |= K.breakaway_within_step(
+                    heap_state(), small & ~failed, starts, a, b, normal, r_a, r_b, box, slip,
+                    half_vel, half_om, v_t_end, mu_s, mu_d, x_n, x_t, lo, hi, remain,
+                    attempt == 1)
+            if not redo.any():
+                break
             small, large = small & redo, large & redo
+        x_t = np.where(offset != 0.0, x_t + offset, x_t)
         p_n[order] = x_n
         p_t[order] = x_t
         p_state[order] = states
