@@ -21,6 +21,14 @@ from sensor_msgs.msg import JointState, PointCloud2, PointField
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
+from feeder_sim.model.scene import (
+    _body_name,
+    _Invalid,
+    _number,
+    MAX_LENGTH_M,
+    MAX_SPEED_MPS,
+    MAX_SPIN_RAD_S,
+)
 from feeder_sim.model.world import perp
 from feeder_sim.output.impulses import PartImpulses
 from feeder_sim.output.recording import (
@@ -31,7 +39,6 @@ from feeder_sim.output.recording import (
 )
 
 _NS = 1_000_000_000
-
 
 
 def stamp(t_ns: int) -> Time:
@@ -215,3 +222,98 @@ def diagnostics(t_ns: int, name: str, level: bytes, message: str,
                               hardware_id='feeder_sim')
     status.values = [KeyValue(key=k, value=v) for k, v in key_values(values)]
     return DiagnosticArray(header=header(t_ns, ''), status=[status])
+
+
+# -- requests --------------------------------------------------------------------------------
+
+class RequestError(ValueError):
+    """A request field a scene file would refuse: one sentence naming the field."""
+
+
+# |x|, |y| of an orientation's axis, relative to the quaternion's norm, still taken as a
+# rotation about z: a quaternion built from a yaw has them exactly 0
+_TILT = 1e-9
+_SHOWN_CHARS = 60    # of a refused text: a name of a megabyte must not come back whole
+
+
+def _shown(text: str) -> str:
+    r = repr(text)
+    return r if len(r) <= _SHOWN_CHARS else r[:_SHOWN_CHARS] + '...'
+
+
+def _scene_checked(check, value, field: str):
+    """``check`` of scene.py (the rule a scene file's field has), its refusal naming ``field``."""
+    try:
+        return check(value, field)
+    except _Invalid as err:
+        raise RequestError(f'{err.path}: {err.message}') from None
+
+
+def body_name(value: str, field: str, *, empty: bool = False) -> str:
+    """A part or template name by the scene files' rule for body names (``empty``: '' too)."""
+    if empty and value == '':
+        return value
+    try:
+        return _body_name(value, field)
+    except _Invalid as err:
+        text = err.message.replace(repr(value), _shown(value), 1)
+        raise RequestError(f'{field}: {text}') from None
+
+
+def _bounded(value: float, field: str, limit: float, unit: str) -> float:
+    return _scene_checked(
+        lambda v, p: _number(v, p, -limit, limit, unit=unit,
+                             hint='larger values do not keep a run finite and meaningful'),
+        value, field)
+
+
+def _zero(value: float, field: str, why: str) -> None:
+    if value != 0.0:                           # NaN too
+        raise RequestError(f'{field} must be 0 ({why}), got {value:g}')
+
+
+def planar_yaw(q, field: str) -> float:
+    """The yaw (rad) of quaternion ``q`` (any norm), a rotation about z; RequestError naming
+    ``field`` for one that is not finite, zero or turns out of the plane.
+
+    The components are scaled by the largest before squaring: 1e200 squared overflows."""
+    c = (q.x, q.y, q.z, q.w)
+    shown = f'({c[0]:g}, {c[1]:g}, {c[2]:g}, {c[3]:g})'
+    if not all(math.isfinite(v) for v in c):
+        raise RequestError(f'{field} must be a quaternion of finite numbers, got {shown}')
+    largest = max(abs(v) for v in c)
+    if largest == 0.0:
+        raise RequestError(f'{field} must be a rotation, got the zero quaternion: give w = 1 '
+                           'for none')
+    x, y, z, w = (v / largest for v in c)
+    norm = math.sqrt(x * x + y * y + z * z + w * w)      # in [1, 2]
+    if abs(x) > _TILT * norm or abs(y) > _TILT * norm:
+        raise RequestError(f'{field} must be a rotation about z (x = y = 0): the simulation is '
+                           f'planar, got {shown}')
+    return 2.0 * math.atan2(z, w)
+
+
+def planar_state(pose_stamped, twist, pose_field: str, twist_field: str,
+                 frames: Sequence[str]) -> tuple[list[float], list[float]]:
+    """[x, y, yaw] and [vx, vy, omega] of a request's PoseStamped and Twist, every field
+    checked as a scene file's ``pose`` and ``velocity`` are (scene.py's bounds); a
+    RequestError naming the first field that is not."""
+    frame = pose_stamped.header.frame_id
+    if frame not in frames:
+        allowed = ' or '.join(repr(f) for f in dict.fromkeys(frames) if f)
+        raise RequestError(f'{pose_field}.header.frame_id must be {allowed} or empty (poses '
+                           f'are in the world frame), got {_shown(frame)}')
+    p, q = pose_stamped.pose.position, pose_stamped.pose.orientation
+    at = f'{pose_field}.pose.position'
+    x = _bounded(p.x, f'{at}.x', MAX_LENGTH_M, 'm')
+    y = _bounded(p.y, f'{at}.y', MAX_LENGTH_M, 'm')
+    _zero(p.z, f'{at}.z', 'the scene is the plane z = 0')
+    yaw = planar_yaw(q, f'{pose_field}.pose.orientation')
+    lin, ang = twist.linear, twist.angular
+    vx = _bounded(lin.x, f'{twist_field}.linear.x', MAX_SPEED_MPS, 'm/s')
+    vy = _bounded(lin.y, f'{twist_field}.linear.y', MAX_SPEED_MPS, 'm/s')
+    _zero(lin.z, f'{twist_field}.linear.z', 'parts move in the plane z = 0')
+    _zero(ang.x, f'{twist_field}.angular.x', 'parts turn about z only')
+    _zero(ang.y, f'{twist_field}.angular.y', 'parts turn about z only')
+    omega = _bounded(ang.z, f'{twist_field}.angular.z', MAX_SPIN_RAD_S, 'rad/s')
+    return [x, y, yaw], [vx, vy, omega]

@@ -29,13 +29,16 @@ and, where feeder_sim_interfaces is built, ``~/spawn_entity``, ``~/delete_entity
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+import functools
 import math
 import os
 import signal
 import sys
 import threading
 import time
+import traceback
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseArray
@@ -178,6 +181,23 @@ def usage() -> str:
     return '\n'.join(lines)
 
 
+def _failure(request, response, sentence: str):
+    """The failure answer of a service type: a Result's RESULT_OPERATION_FAILED (the part
+    services), success = false (Trigger, SetBool), or the type's default answer."""
+    if hasattr(response, 'result') and hasattr(response.result, 'error_message'):
+        response.result.result = response.result.RESULT_OPERATION_FAILED
+        response.result.error_message = sentence
+    elif hasattr(response, 'success'):
+        response.success = False
+        if hasattr(response, 'message'):
+            response.message = sentence
+    return response
+
+
+def _nothing(*args) -> None:
+    return None
+
+
 class SimNode(Node):
     """The ``feeder_sim`` node. Construct after ``rclpy.init``; ``close()`` finalizes the log.
 
@@ -186,6 +206,10 @@ class SimNode(Node):
     """
 
     def __init__(self, **node_options) -> None:
+        # before Node.__init__: the parameter services it creates are guarded too
+        self.callback_exceptions = 0
+        self._exception_types: set[str] = set()
+        self._last_exception = ''
         super().__init__(NODE_NAME, **node_options)
         # `-p duration:=20` arrives as an INTEGER: a whole number is a fine double
         for name, given in list(self._parameter_overrides.items()):
@@ -305,6 +329,66 @@ class SimNode(Node):
             f'{1e9 / self.period_ns:g} frames per simulated s, real-time factor {self._rtf:g}'
             + (f', recording to {self.recorder.path}' if self.recorder else '')
             + (', paused' if self.paused else ''))
+
+    # -- callbacks: an exception in one never ends the node ---------------------------------
+
+    def _guarded(self, callback: Callable, where: str,
+                 failed: Callable[..., object]) -> Callable:
+        """``callback`` such that an exception it raises (a bug, a request no check foresaw)
+        is logged once per type, counted in /diagnostics and answered by ``failed(*args,
+        sentence)``; rclpy would let it out of ``spin_once`` and end the node."""
+        @functools.wraps(callback)
+        def guarded(*args):
+            try:
+                return callback(*args)
+            except ExternalShutdownException:
+                raise
+            except Exception as err:   # noqa: BLE001 - any type: none may end the node
+                return failed(*args, self._unexpected(where, err))
+        return guarded
+
+    def _unexpected(self, where: str, err: Exception) -> str:
+        """Count and log (once per type) an exception a callback let out; the sentence that
+        answers a request with it."""
+        kind = type(err).__name__
+        text = ' '.join(str(err).split())[:300] or 'no message'
+        sentence = f'{where} failed unexpectedly: {kind}: {text}'
+        self.callback_exceptions += 1
+        self._last_exception = sentence
+        if kind not in self._exception_types:
+            self._exception_types.add(kind)
+            self.get_logger().error(f'{sentence}; refused, counted in /diagnostics '
+                                    '(callback_exceptions), the node runs on')
+            self.get_logger().debug(''.join(traceback.format_exception(err)))
+        return sentence
+
+    def create_service(self, srv_type, srv_name: str, callback: Callable, **kwargs):
+        """A service whose callback is guarded (:meth:`_guarded`): an unexpected exception is
+        answered with the type's failure (a Result's RESULT_OPERATION_FAILED, success =
+        false) and the sentence."""
+        return super().create_service(
+            srv_type, srv_name, self._guarded(callback, f'service {srv_name}', _failure),
+            **kwargs)
+
+    def create_subscription(self, msg_type, topic: str, callback: Callable, *args, **kwargs):
+        return super().create_subscription(
+            msg_type, topic, self._guarded(callback, f'subscription {topic}', _nothing),
+            *args, **kwargs)
+
+    def create_timer(self, timer_period_sec: float, callback: Callable, *args, **kwargs):
+        name = getattr(callback, '__name__', 'timer')
+        return super().create_timer(
+            timer_period_sec, self._guarded(callback, f'timer {name}', _nothing), *args,
+            **kwargs)
+
+    def add_on_set_parameters_callback(self, callback: Callable) -> None:
+        super().add_on_set_parameters_callback(self._guarded(
+            callback, 'parameter change',
+            lambda params, sentence: SetParametersResult(successful=False, reason=sentence)))
+
+    def add_pre_set_parameters_callback(self, callback: Callable) -> None:
+        super().add_pre_set_parameters_callback(self._guarded(
+            callback, 'parameter change', lambda params, sentence: params))
 
     # -- time ------------------------------------------------------------------------------
 
@@ -499,6 +583,10 @@ class SimNode(Node):
         elif stats.fallbacks or stats.unconverged:
             level, message = DiagnosticStatus.WARN, (
                 f'{stats.fallbacks} solver fallbacks, {stats.unconverged} unconverged solves')
+        elif self.callback_exceptions:
+            level, message = DiagnosticStatus.WARN, (
+                f'{self.callback_exceptions} unexpected exceptions in callbacks, the last: '
+                f'{self._last_exception}')
         name, values = 'feeder_sim: simulation', self.status()
         self.pub_diagnostics.publish(msgs.diagnostics(self.t_ns, name, level, message, values))
         self._record(lambda r: r.write_diagnostics(
@@ -571,6 +659,8 @@ class SimNode(Node):
             'commands_accepted': self.commands_accepted,
             'commands_rejected': self.commands_rejected,
             'recording': self._record_status,
+            'callback_exceptions': self.callback_exceptions,
+            'last_callback_exception': self._last_exception,
         }
 
     # -- recording -------------------------------------------------------------------------
@@ -688,47 +778,34 @@ class SimNode(Node):
         response.result = Result(result=getattr(Result, code_name), error_message=message)
         return response
 
-    def _planar(self, pose_stamped, twist) -> tuple[list[float], list[float]]:
-        """[x, y, yaw] and [vx, vy, omega] of a pose and twist in the plane of the scene;
-        ValueError naming the field that leaves it."""
-        frame = pose_stamped.header.frame_id
-        if frame not in ('', 'world', self.frame_id):
-            raise ValueError(f"pose.header.frame_id must be '{self.frame_id}' or empty, got "
-                             f'{frame!r}')
-        p, q = pose_stamped.pose.position, pose_stamped.pose.orientation
-        norm = math.sqrt(q.x ** 2 + q.y ** 2 + q.z ** 2 + q.w ** 2)
-        if not norm > 0.0 or abs(q.x) > 1e-9 * norm or abs(q.y) > 1e-9 * norm:
-            raise ValueError('pose.orientation must be a rotation about z (x = y = 0), got '
-                             f'({q.x:g}, {q.y:g}, {q.z:g}, {q.w:g})')
-        if p.z != 0.0:
-            raise ValueError(f'pose.position.z must be 0 in a planar scene, got {p.z:g}')
-        lin, ang = twist.linear, twist.angular
-        if lin.z != 0.0 or ang.x != 0.0 or ang.y != 0.0:
-            raise ValueError('twist must lie in the plane: linear.z, angular.x and angular.y '
-                             'must be 0')
-        values = [p.x, p.y, 2.0 * math.atan2(q.z, q.w), lin.x, lin.y, ang.z]
-        if not all(math.isfinite(v) for v in values):
-            raise ValueError('pose and twist must be finite numbers')
-        return values[:3], values[3:]
+    def _frames(self) -> tuple[str, ...]:
+        """Frame ids a request's pose may be in: the world's, named as the node names it."""
+        return ('', 'world', self.frame_id)
 
     def _changed_parts(self, what: str) -> None:
         self._follow_parts()
         self.get_logger().info(what)
 
     def _on_spawn_entity(self, request, response):
+        try:
+            msgs.body_name(request.name, 'name', empty=True)
+            msgs.body_name(request.uri, 'uri')
+            pose, velocity = msgs.planar_state(request.initial_pose, request.initial_twist,
+                                               'initial_pose', 'initial_twist', self._frames())
+        except msgs.RequestError as err:
+            return self._result(response, 'RESULT_OPERATION_FAILED', str(err))
         name = request.name
         taken = name in self.sim.world.names
         if not name or (taken and request.allow_renaming):
-            name = self.sim.free_name(name or request.uri or 'part')
+            name = self.sim.free_name(name or request.uri)
         elif taken:
             return self._result(response, 'RESULT_INCORRECT_STATE',
-                                f'a body is already named {name!r} (set allow_renaming to get '
-                                'a free name)')
+                                f'name: a body is already named {name!r} (set allow_renaming '
+                                'to get a free name)')
         try:
-            pose, velocity = self._planar(request.initial_pose, request.initial_twist)
             self.sim.add_part(request.uri, name, pose, velocity)
         except UnknownPart as err:
-            return self._result(response, 'RESULT_NOT_FOUND', str(err))
+            return self._result(response, 'RESULT_NOT_FOUND', f'uri: {err}')
         except (ValueError, SceneError) as err:
             return self._result(response, 'RESULT_OPERATION_FAILED', str(err))
         response.entity_name = name
@@ -737,18 +814,27 @@ class SimNode(Node):
 
     def _on_delete_entity(self, request, response):
         try:
+            msgs.body_name(request.entity, 'entity')
+        except msgs.RequestError as err:
+            return self._result(response, 'RESULT_OPERATION_FAILED', str(err))
+        try:
             self.sim.remove_part(request.entity)
         except UnknownPart as err:
-            return self._result(response, 'RESULT_NOT_FOUND', str(err))
+            return self._result(response, 'RESULT_NOT_FOUND', f'entity: {err}')
         self._changed_parts(f'deleted {request.entity} at t = {self.sim.t:.6g} s')
         return self._result(response, 'RESULT_OK')
 
     def _on_set_entity_state(self, request, response):
         try:
-            pose, velocity = self._planar(request.pose, request.twist)
+            msgs.body_name(request.entity, 'entity')
+            pose, velocity = msgs.planar_state(request.pose, request.twist, 'pose', 'twist',
+                                               self._frames())
+        except msgs.RequestError as err:
+            return self._result(response, 'RESULT_OPERATION_FAILED', str(err))
+        try:
             self.sim.set_part_pose(request.entity, pose, velocity)
         except UnknownPart as err:
-            return self._result(response, 'RESULT_NOT_FOUND', str(err))
+            return self._result(response, 'RESULT_NOT_FOUND', f'entity: {err}')
         except (ValueError, SceneError) as err:
             return self._result(response, 'RESULT_OPERATION_FAILED', str(err))
         self._changed_parts(f'placed {request.entity} at t = {self.sim.t:.6g} s')
