@@ -24,7 +24,16 @@ import numpy as np
 import pytest
 import yaml
 
-from feeder_sim.model.scene import parse_scene, read_scene_data, SceneError, shipped_scenes
+from feeder_sim.model.scene import (
+    MAX_ANGLE_RAD,
+    MAX_LENGTH_M,
+    MAX_SPEED_MPS,
+    MAX_SPIN_RAD_S,
+    parse_scene,
+    read_scene_data,
+    SceneError,
+    shipped_scenes,
+)
 from feeder_sim.simulator import Simulator
 from feeder_sim.stepping import EventSettings, ImpulseSettings, TimeStepSettings
 
@@ -353,3 +362,118 @@ def test_python_api_misuse_is_one_line_naming_the_argument(case):
     assert sim.t == before.t and np.array_equal(sim.state.position, before.position)
     sim.advance(0.02)
     assert sim.t > before.t
+
+
+# -- state and settings changed from Python ------------------------------------------------
+
+STATE_BOUNDS = {'position': MAX_LENGTH_M, 'angle': MAX_ANGLE_RAD, 'velocity': MAX_SPEED_MPS,
+                'omega': MAX_SPIN_RAD_S}
+
+
+def _out_of(limit: float):
+    past = st.floats(min_value=math.nextafter(limit, math.inf), max_value=1.7e308)
+    return st.one_of(st.sampled_from([math.nan, math.inf, -math.inf]), past,
+                     past.map(lambda x: -x))
+
+
+@st.composite
+def state_changes(draw):
+    """(field, component, value, bad): a part's value set in place beyond a scene's bounds, or
+    within them (``value`` is then a function of the value before: a place and a turn the run
+    can go on from)."""
+    field = draw(st.sampled_from(sorted(STATE_BOUNDS)))
+    component = draw(st.integers(0, 1)) if field in ('position', 'velocity') else None
+    if draw(st.booleans()):
+        return field, component, draw(_out_of(STATE_BOUNDS[field])), True
+    if field == 'position':
+        d = draw(st.floats(0.0, 1e-2) if component == 1 else st.floats(-1e-2, 1e-2))
+        return field, component, lambda x: x + d, False           # lifted or moved along
+    if field == 'angle':
+        k = draw(st.integers(-150, 150))                            # whole turns, < 1000 rad
+        return field, component, lambda x: x + 2 * math.pi * k, False
+    v = draw(st.floats(-1.0, 1.0) if field == 'velocity' else st.floats(-10.0, 10.0))
+    return field, component, lambda x: v, False
+
+
+@settings(max_examples=30, deadline=None, database=None)
+@given(state_changes())
+def test_a_state_value_changed_in_place_is_checked_at_the_next_advance(change):
+    # `state.velocity[...] = 1e300` ran on to positions of 5e298 and `omega = inf` to NaN
+    # poses: now one line naming the element, the state as it was given, and a value put back
+    # within the bounds runs on
+    field, component, value, bad = change
+    sim = Simulator(parse_scene(SCENES['track_one_box']))
+    sim.advance(0.01)
+    part = int(sim.part_indices[0])
+    at = part if component is None else (part, component)
+    array = getattr(sim.state, field)
+    before = float(array[at])
+    if bad:
+        array[at] = value
+        with pytest.raises(ValueError) as err:
+            sim.advance_by(0.01)
+        message = str(err.value)
+        assert '\n' not in message
+        shown = str(part) if component is None else f'{part}, {component}'
+        assert message.startswith(f"state.{field}[{shown}] (part 'box') must be finite and "
+                                  f'within +-{STATE_BOUNDS[field]:g} ')
+        assert sim.t == pytest.approx(0.01)
+        array[at] = before
+    else:
+        array[at] = value(before)
+    sim.advance_by(0.01)
+    assert sim.t == pytest.approx(0.02, abs=1e-12)
+    s = sim.state
+    assert all(np.all(np.isfinite(a)) for a in (s.position, s.angle, s.velocity, s.omega))
+
+
+def test_the_simulations_own_values_beyond_the_bounds_run_on():
+    # a part that fell off the track falls on past the scene's bounds: not the caller's doing
+    sim = Simulator(parse_scene(SCENES['track_one_box']))
+    sim.advance(0.01)
+    part = int(sim.part_indices[0])
+    sim.state.position[part, 1] = -2e4
+    with pytest.raises(ValueError, match=r"^state\.position\[1, 1\] \(part 'box'\)"):
+        sim.advance(0.02)
+    sim._trusted = sim._trusted[:0] + (sim.state.position.tobytes(),) + sim._trusted[1:]
+    sim.advance(0.02)                      # as if the simulation had put it there
+    assert sim.t == pytest.approx(0.02)
+
+
+@pytest.mark.parametrize('t', [1e18, -1e300, 1e10])
+def test_a_state_time_beyond_the_round_off_of_a_step_is_refused(t):
+    sim = Simulator(parse_scene(SCENES['track_one_box']))
+    sim.state.t = t
+    for call in (lambda: sim.advance_by(0.01), lambda: sim.advance_to(t + 1.0)):
+        with pytest.raises(ValueError, match=r'^state\.t must be within \+-1e\+09 s \(beyond, '
+                                             r'a step of 0\.001 s is lost in the round-off'):
+            call()
+
+
+@pytest.mark.parametrize('duration', [np.float32(0.01), np.float16(0.01), np.float64(0.01),
+                                      np.longdouble(0.01)], ids=lambda x: type(x).__name__)
+def test_a_numpy_scalar_is_taken_as_the_python_float_it_stands_for(duration):
+    # np.float32 made t a float32: kernels compiled anew for 84 s and t drifted to 0.0199999995
+    sim = Simulator(parse_scene(SCENES['track_one_box']))
+    start = time.perf_counter()
+    sim.advance_by(duration)
+    sim.advance_by(duration)
+    sim.advance_to(np.float32(0.03))
+    assert type(sim.t) is float and sim.t == 0.03
+    assert time.perf_counter() - start < 5.0
+    sim.state.t = np.float32(0.04)
+    sim.advance_by(0.01)
+    assert type(sim.t) is float and sim.t == pytest.approx(0.05, abs=1e-12)
+
+
+@pytest.mark.parametrize('settings_type', [TimeStepSettings, EventSettings, ImpulseSettings])
+def test_every_number_of_the_settings_has_a_range(settings_type):
+    numbers = [f.name for f in dataclasses.fields(settings_type)
+               if str(f.type).split('|')[0].strip() in ('int', 'float')]
+    assert numbers and sorted(set(numbers) - set(settings_type.LIMITS)) == []
+
+
+def test_no_pgs_sweep_is_refused_at_construction():
+    with pytest.raises(ValueError, match=r'^TimeStepSettings\.pgs_max_sweeps must be an '
+                                         r'integer \(64 bits\) >= 1, got 0$'):
+        TimeStepSettings(pgs_max_sweeps=0)

@@ -367,12 +367,14 @@ class SimNode(Node):
         answered with the type's failure (a Result's RESULT_OPERATION_FAILED, success =
         false) and the sentence."""
         return super().create_service(
-            srv_type, srv_name, self._guarded(callback, f'service {srv_name}', _failure),
+            srv_type, srv_name, self._guarded(
+                callback, f'service {self.resolve_service_name(srv_name)}', _failure),
             **kwargs)
 
     def create_subscription(self, msg_type, topic: str, callback: Callable, *args, **kwargs):
         return super().create_subscription(
-            msg_type, topic, self._guarded(callback, f'subscription {topic}', _nothing),
+            msg_type, topic, self._guarded(
+                callback, f'subscription {self.resolve_topic_name(topic)}', _nothing),
             *args, **kwargs)
 
     def create_timer(self, timer_period_sec: float, callback: Callable, *args, **kwargs):

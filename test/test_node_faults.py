@@ -1,0 +1,241 @@
+"""Fault campaign of the node's requests and callbacks, over real DDS.
+
+Generated part-service requests with extreme, NaN, infinite, huge or malformed fields must each
+be refused within 2 s with one sentence naming a bad field, and the node steps on after the
+storm; an exception no check foresaw, in any callback, is answered as a refusal, logged,
+counted, and the node runs on.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import re
+import time
+
+from geometry_msgs.msg import PoseArray
+from hypothesis import given, settings
+from hypothesis import strategies as st
+import pytest
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import SetBool, Trigger
+import test_sim_node as base
+
+from feeder_sim.model.scene import MAX_LENGTH_M, MAX_SPEED_MPS, MAX_SPIN_RAD_S
+from feeder_sim.ros import node as sim_node
+
+srv = pytest.importorskip('feeder_sim_interfaces.srv')
+Result = pytest.importorskip('feeder_sim_interfaces.msg').Result
+
+pytestmark = pytest.mark.timeout(120)
+
+# the in-process node of test_sim_node: a private context, the node and a probe
+graph = base.graph
+resting_scene = base.resting_scene
+_pose_stamped = base._pose_stamped
+
+ANSWER_S = 2.0
+EXAMPLES = 30
+STORM = settings(max_examples=EXAMPLES, deadline=None, database=None)
+BODY_NAME = re.compile(r'[A-Za-z0-9_][A-Za-z0-9_-]*\Z')
+
+
+def _beyond(limit: float):
+    """NaN, infinities and finite numbers past +-limit, up to the largest double."""
+    past = st.floats(min_value=math.nextafter(limit, math.inf), max_value=1.7e308)
+    return st.one_of(st.sampled_from([math.nan, math.inf, -math.inf]), past,
+                     past.map(lambda x: -x))
+
+
+NOT_ZERO = st.floats().filter(lambda x: x != 0.0)
+TEXT = st.text(st.characters(blacklist_categories=('Cs',), blacklist_characters='\x00'),
+               max_size=40)
+NOT_A_NAME = TEXT.filter(lambda s: not BODY_NAME.match(s))
+
+
+@st.composite
+def bad_quaternions(draw) -> tuple[float, float, float, float]:
+    kind = draw(st.sampled_from(['zero', 'not finite', 'tilted']))
+    if kind == 'zero':
+        return draw(st.tuples(*[st.sampled_from([0.0, -0.0])] * 4))
+    if kind == 'not finite':
+        q = list(draw(st.tuples(*[st.floats(-1e300, 1e300)] * 4)))
+        q[draw(st.integers(0, 3))] = draw(st.sampled_from([math.nan, math.inf, -math.inf]))
+        return tuple(q)
+    # a turn out of the plane: x or y at least 1 % of the largest component, at any scale
+    unit = st.floats(-1.0, 1.0)
+    x, y, z, w = draw(st.tuples(unit, unit, unit, unit).filter(
+        lambda q: max(abs(q[0]), abs(q[1])) >= 0.01 * max(map(abs, q))))
+    scale = draw(st.sampled_from([1e-300, 1e-5, 1.0, 1e200, 1e300]))
+    return x * scale, y * scale, z * scale, w * scale
+
+
+def _pose_fields(pose: str, twist: str) -> dict:
+    return {
+        f'{pose}.header.frame_id': TEXT.filter(lambda s: s not in ('', 'world')),
+        f'{pose}.pose.position.x': _beyond(MAX_LENGTH_M),
+        f'{pose}.pose.position.y': _beyond(MAX_LENGTH_M),
+        f'{pose}.pose.position.z': NOT_ZERO,
+        f'{pose}.pose.orientation': bad_quaternions(),
+        f'{twist}.linear.x': _beyond(MAX_SPEED_MPS),
+        f'{twist}.linear.y': _beyond(MAX_SPEED_MPS),
+        f'{twist}.linear.z': NOT_ZERO,
+        f'{twist}.angular.x': NOT_ZERO,
+        f'{twist}.angular.y': NOT_ZERO,
+        f'{twist}.angular.z': _beyond(MAX_SPIN_RAD_S),
+    }
+
+
+BAD_FIELDS = {
+    'spawn_entity': {'name': NOT_A_NAME.filter(bool), 'uri': NOT_A_NAME,
+                     **_pose_fields('initial_pose', 'initial_twist')},
+    'set_entity_state': {'entity': NOT_A_NAME, **_pose_fields('pose', 'twist')},
+}
+
+
+def _set(request, path: str, value) -> None:
+    *parents, last = path.split('.')
+    target = request
+    for key in parents:
+        target = getattr(target, key)
+    if last == 'orientation':
+        q = getattr(target, last)
+        q.x, q.y, q.z, q.w = value
+    else:
+        setattr(target, last, value)
+
+
+@st.composite
+def bad_requests(draw, service: str, good):
+    """``good`` with one to three of its fields made bad: (request, the bad fields)."""
+    table = BAD_FIELDS[service]
+    fields = draw(st.lists(st.sampled_from(sorted(table)), min_size=1, max_size=3,
+                           unique=True))
+    request = copy.deepcopy(good)
+    for field in fields:
+        _set(request, field, draw(table[field]))
+    return request, fields
+
+
+def _storm(graph, service: str, good) -> dict[str, int]:
+    """Every generated request refused in time with one sentence naming a bad field; the
+    fields named, counted."""
+    srv_type = {'spawn_entity': srv.SpawnEntity, 'set_entity_state': srv.SetEntityState}[service]
+    client = graph.client(srv_type, f'/feeder_sim/{service}')
+    named: dict[str, int] = {}
+
+    @STORM
+    @given(bad_requests(service, good))
+    def ask(case):
+        request, fields = case
+        start = time.monotonic()
+        future = client.call_async(request)
+        graph.spin_until(future.done, timeout_s=ANSWER_S)
+        assert time.monotonic() - start < ANSWER_S
+        result = future.result().result
+        assert result.result == Result.RESULT_OPERATION_FAILED, (fields, result)
+        message = result.error_message
+        assert message and '\n' not in message and len(message) < 400, message
+        field = next((f for f in fields if message.startswith(f)), None)
+        assert field is not None, (fields, message)
+        named[field] = named.get(field, 0) + 1
+
+    ask()
+    return named
+
+
+def _steps_on(graph, node, poses: list) -> None:
+    n, t = len(poses), node.sim.t
+    graph.spin_until(lambda: len(poses) > n + 2 and node.sim.t > t, timeout_s=10)
+
+
+@pytest.mark.parametrize('service', ['spawn_entity', 'set_entity_state'])
+def test_a_storm_of_bad_part_requests_is_refused_field_by_field_and_the_node_steps_on(
+        graph, resting_scene, service):
+    poses = graph.listen(PoseArray, '/feeder_sim/part_poses')
+    node = graph.start(scene=str(resting_scene), real_time_factor=1.0)
+    graph.spin_until(lambda: len(poses) >= 2)
+    if service == 'spawn_entity':
+        good = srv.SpawnEntity.Request(name='', uri='box',
+                                       initial_pose=_pose_stamped(-0.3, 0.005, 0.0))
+    else:
+        good = srv.SetEntityState.Request(entity='box', pose=_pose_stamped(-0.4, 0.005, 0.0))
+    named = _storm(graph, service, good)
+    print(f'{service}: {sum(named.values())} generated requests refused, naming {named}')
+    assert list(node.sim.part_poses()[0]) == ['box'] and node.callback_exceptions == 0
+    _steps_on(graph, node, poses)
+
+
+def test_a_huge_but_planar_quaternion_is_a_rotation_about_z(graph, resting_scene):
+    # components of 1e300 overflowed when squared and ended the node; scaled, they are a yaw
+    poses = graph.listen(PoseArray, '/feeder_sim/part_poses')
+    node = graph.start(scene=str(resting_scene), real_time_factor=0.0, start_paused=True)
+    graph.spin_until(lambda: node.pub_poses.get_subscription_count() > 0)
+    _, origin, angle = node.sim.part_poses()
+    x, y, yaw = *origin[0], angle[0]
+    for scale in (1e300, 1e-300, 1e200, -1e250):
+        pose = _pose_stamped(x, y, yaw, frame='')
+        q = pose.pose.orientation
+        q.z, q.w = scale * q.z, scale * q.w
+        reply = graph.call(srv.SetEntityState, '/feeder_sim/set_entity_state',
+                           srv.SetEntityState.Request(entity='box', pose=pose))
+        assert reply.result.result == Result.RESULT_OK, reply.result.error_message
+        turned = node.sim.part_poses()[2][0] - yaw      # -q is the same rotation
+        assert abs(math.remainder(turned, 2 * math.pi)) < 1e-12
+    assert graph.call(SetBool, '/feeder_sim/pause', SetBool.Request(data=False)).success
+    _steps_on(graph, node, poses)
+
+
+def test_an_unexpected_exception_in_any_callback_is_a_refusal_and_the_node_runs_on(
+        graph, resting_scene, monkeypatch, capfd):
+    from diagnostic_msgs.msg import DiagnosticArray
+    poses = graph.listen(PoseArray, '/feeder_sim/part_poses')
+    diagnostics = graph.listen(DiagnosticArray, '/diagnostics')
+    node = graph.start(scene=str(resting_scene), real_time_factor=1.0, diagnostics_period=0.1)
+    graph.spin_until(lambda: len(poses) >= 2)
+
+    def broken(*args, **kwargs):
+        raise ZeroDivisionError('float division by zero')
+
+    # services answer with their type's failure and the exception in one sentence
+    monkeypatch.setattr(node.sim, 'add_part', broken)
+    for _ in range(2):
+        reply = graph.call(srv.SpawnEntity, '/feeder_sim/spawn_entity', srv.SpawnEntity.Request(
+            uri='box', initial_pose=_pose_stamped(-0.3, 0.005, 0.0)))
+        assert reply.result.result == Result.RESULT_OPERATION_FAILED
+        assert reply.result.error_message == ('service /feeder_sim/spawn_entity failed '
+                                              'unexpectedly: ZeroDivisionError: float division '
+                                              'by zero')
+    monkeypatch.setattr(node.sim, 'reset', broken)
+    reply = graph.call(Trigger, '/feeder_sim/reset', Trigger.Request())
+    assert not reply.success and 'ZeroDivisionError: float division by zero' in reply.message
+    # the vibration command's subscription
+    monkeypatch.setattr(sim_node, 'parse_command', broken)
+    graph.publisher(Float64MultiArray, 'vibration_cmd').publish(
+        Float64MultiArray(data=[1e-4, 50.0]))
+    graph.spin_until(lambda: node.callback_exceptions == 4)
+    # the frame timer: one frame fails, the next ones run
+    advance = node.sim.advance_to
+    failing = [True]
+
+    def once(t_end):
+        if failing.pop() if failing else False:
+            raise FloatingPointError('overflow in a frame')
+        advance(t_end)
+
+    monkeypatch.setattr(node.sim, 'advance_to', once)
+    graph.spin_until(lambda: node.callback_exceptions == 5)
+    _steps_on(graph, node, poses)
+    # a parameter callback: the change is refused with the sentence
+    monkeypatch.setattr(sim_node, 'CommandLimits', broken)
+    from rclpy.parameter import Parameter
+    result = node.set_parameters([Parameter('max_amplitude_m', value=0.01)])[0]
+    assert not result.successful and 'ZeroDivisionError' in result.reason
+    assert node.callback_exceptions == 6
+    graph.spin_until(lambda: diagnostics and dict(
+        (kv.key, kv.value) for kv in diagnostics[-1].status[0].values).get(
+        'callback_exceptions') == '6')
+    _steps_on(graph, node, poses)
+    # logged once per type of exception, in one line each
+    err = capfd.readouterr().err
+    assert err.count('ZeroDivisionError') == 1 and err.count('FloatingPointError') == 1
