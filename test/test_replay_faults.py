@@ -130,6 +130,38 @@ def test_flipped_chunk_names_the_lost_frames_and_allow_damaged_replays_the_rest(
     assert 0 < len(kept) < FRAMES
 
 
+def test_damaged_record_header_in_a_cut_log_is_damage_not_the_cut(tmp_path, capsys, caplog):
+    # no footer (a killed writer) and a chunk's length field damaged mid-file: the walk finds
+    # the next chunk, names the frames between the good neighbours, and replays the rest
+    good = write_log(tmp_path / 'good.mcap', compression='none')
+    with open(good, 'rb') as f:
+        reader = make_reader(f)
+        chunks = reader.get_summary().chunk_indexes
+        times = {m.log_time: k for k, (_, c, m) in enumerate(reader.iter_messages())
+                 if c.topic == TOPIC_PART_POSES}
+    k = len(chunks) // 2
+    hit, last = chunks[k], chunks[-1]
+    data = bytearray(good.read_bytes()[:last.chunk_start_offset + last.chunk_length // 2])
+    data[hit.chunk_start_offset + 1:hit.chunk_start_offset + 9] = b'\xff' * 8
+    bad = tmp_path / 'bad.mcap'
+    bad.write_bytes(bytes(data))
+    code, err = replay_cli(bad, tmp_path / 'bad.rrd', capsys=capsys)
+    assert code == 1
+    after = (chunks[k - 1].message_end_time - ORIGIN_NS) / 1e9
+    before = (chunks[k + 1].message_start_time - ORIGIN_NS) / 1e9
+    assert (f'frames after t={after:.3f} s and before t={before:.3f} s lost (record at byte '
+            f'{hit.chunk_start_offset}: a record of') in err, err
+    caplog.clear()
+    code, err = replay_cli(bad, tmp_path / 'bad.rrd', '--allow-damaged', capsys=capsys)
+    assert code == 0 and 'ends without its footer' in caplog.text
+    kept = pose_times(tmp_path / 'bad.rrd')
+    expected = [t - ORIGIN_NS for t in times
+                if chunks[0].message_start_time <= t <= chunks[k - 1].message_end_time
+                or chunks[k + 1].message_start_time <= t < last.message_start_time]
+    assert set(expected) <= set(kept) and kept[-1] < last.message_end_time - ORIGIN_NS
+    assert not [t for t in kept if after * 1e9 < t < before * 1e9]
+
+
 def test_truncated_log_is_not_damaged(tmp_path, capsys, caplog):
     # a killed writer leaves no footer: what it wrote replays, exit 0, one warning
     good = write_log(tmp_path / 'good.mcap')

@@ -233,6 +233,12 @@ _KNOWN_OPCODE = frozenset(range(0x01, 0x10)) | frozenset(range(0x80, 0x100))
 # A chunk's declared uncompressed size is allocated before it is checked; a damaged size field
 # must not ask for gigabytes. mcap writers chunk by a few MiB at most (feeder_sim: 256 KiB).
 _MAX_CHUNK_BYTES = 1 << 28
+# Looking for the next chunk after a damaged record header: the file is read in blocks, and
+# only byte positions that could start a chunk (opcode, a length that fits) are tried.
+_CHUNK_OPCODE = bytes([Opcode.CHUNK])
+_MIN_CHUNK_BODY = 8 + 8 + 8 + 4 + 4 + 8   # times, sizes, CRC, compression length, records length
+_RESYNC_BLOCK = 1 << 20
+_RESYNC_TRIES = 64
 
 
 def _decompressed(chunk: Chunk) -> bytes:
@@ -402,20 +408,53 @@ class _LogReader:
             if opcode in (Opcode.FOOTER, Opcode.DATA_END):
                 return
             body_at = pos + _RECORD_HEADER.size
-            if opcode not in _KNOWN_OPCODE:
+            known = opcode in _KNOWN_OPCODE
+            if not known or length > self.size - body_at:
+                reason = (f'a record of {length} bytes runs past the end of the file' if known
+                          else f'no record starts there (opcode 0x{opcode:02x})')
+                after = self._next_chunk(stream, pos)
+                if after is None:
+                    if note:
+                        # a killed writer's last record: a valid opcode, cut short
+                        self._stopped(pos, reason, cut=known)
+                    return
                 if note:
-                    self._stopped(pos, f'no record starts there (opcode 0x{opcode:02x})')
-                return
-            if length > self.size - body_at:
-                if note:
-                    self._stopped(pos, f'a record of {length} bytes runs past the end of '
-                                       'the file', cut=True)
-                return
+                    self.damage.append(_Damage(pos, reason, what='record'))
+                pos = after
+                stream.seek(pos)
+                continue
             if opcode in wanted:
                 yield opcode, pos, stream.read(length)
             else:
                 stream.seek(length, io.SEEK_CUR)
             pos = body_at + length
+
+    def _next_chunk(self, stream, start: int) -> int | None:
+        """Offset of the first chunk record after ``start`` that passes its checks, or None:
+        where a damaged record header stops the walk, the chunks after it still count (and
+        a killed writer's cut leaves none)."""
+        tries = 0
+        block_at = start + 1
+        while block_at < self.size and tries < _RESYNC_TRIES:
+            stream.seek(block_at)
+            block = stream.read(_RESYNC_BLOCK + _RECORD_HEADER.size)
+            i = block.find(_CHUNK_OPCODE)
+            while 0 <= i < min(_RESYNC_BLOCK, len(block) - _RECORD_HEADER.size + 1):
+                at = block_at + i
+                _, length = _RECORD_HEADER.unpack_from(block, i)
+                if _MIN_CHUNK_BODY <= length <= min(_MAX_CHUNK_BYTES,
+                                                    self.size - at - _RECORD_HEADER.size):
+                    tries += 1
+                    stream.seek(at + _RECORD_HEADER.size)
+                    try:
+                        _chunk_records(stream.read(length))
+                        return at
+                    except _Bad:
+                        if tries >= _RESYNC_TRIES:
+                            return None
+                i = block.find(_CHUNK_OPCODE, i + 1)
+            block_at += _RESYNC_BLOCK
+        return None
 
     def _stopped(self, pos: int, reason: str, cut: bool = False) -> None:
         if cut and not self.finished:
@@ -556,10 +595,9 @@ class _LogReader:
                 # times unknown (the chunk's header is damaged too): the good neighbours'
                 before = [e for o, _, e in self._good if o < d.offset]
                 after = [s for o, s, _ in self._good if o > d.offset]
-                span = ((f'frames after t={_seconds(before[-1] - origin_ns)} s' if before
-                         else 'frames from the start')
-                        + (f' and before t={_seconds(after[0] - origin_ns)} s' if after
-                           else ' to the end'))
+                bounds = ([f'after t={_seconds(before[-1] - origin_ns)} s'] if before else []) + (
+                    [f'before t={_seconds(after[0] - origin_ns)} s'] if after else [])
+                span = 'frames ' + (' and '.join(bounds) or 'at unknown times')
             lines.append(f'{self.path}: {span} lost ({where})')
         return lines
 
