@@ -43,6 +43,8 @@ from typing import Any
 import numpy as np
 
 from feeder_sim.model.scene import (
+    _check_start_overlap,
+    _Invalid,
     METHODS,
     parse_scene,
     read_scene_data,
@@ -50,9 +52,16 @@ from feeder_sim.model.scene import (
     Scene,
     SceneError,
 )
-from feeder_sim.simulator import MAX_PUBLISH_RATE_HZ
+from feeder_sim.simulator import MAX_PUBLISH_RATE_HZ, MAX_STEPS_PER_RUN
 
 MAX_TRIALS = 100_000
+# perturb stands for how parts arrive (a few mm, a few degrees), not where they are: a larger
+# spread is a different scene
+MAX_PERTURB_POSITION_M = 0.1
+MAX_PERTURB_ANGLE_RAD = math.pi
+# value lists up to this long are checked value by value; longer ones, like ranges and
+# samples, at their two ends (a scene checks its numbers against intervals)
+CHECK_EACH_VALUE = 50
 METRICS = {
     'conveying_speed_mps': 'mean speed of the parts along the track over the run, m/s',
     'final_position_m': "mean of the parts' final position along the track, m",
@@ -87,6 +96,16 @@ class Parameter:
     low: float = 0.0
     high: float = 0.0
     count: int = 0
+    is_range: bool = False                   # values from {range: ..., count: n}
+
+    def checked_values(self) -> tuple[float, ...]:
+        """The values a scene is checked at before the first trial: each listed one (up to
+        CHECK_EACH_VALUE), else the ends."""
+        if self.sample is not None:
+            return (self.low, self.high)
+        if self.is_range or len(self.values) > CHECK_EACH_VALUE:
+            return tuple(dict.fromkeys((min(self.values), max(self.values))))
+        return tuple(dict.fromkeys(self.values))
 
 
 @dataclass(frozen=True)
@@ -111,12 +130,26 @@ class StudySpec:
     scene_data: Any = None
     scene_source: str = ''
 
-    def designs(self) -> list[dict[str, float]]:
+    def design_count(self) -> int:
+        """How many designs :meth:`designs` makes, without making them (exact integers: a
+        grid of 100 000 x 100 000 is counted, not built)."""
+        grid = math.prod(len(p.values) for p in self.parameters if p.sample is None)
+        sampled = [p.count for p in self.parameters if p.sample is not None]
+        return grid * (sampled[0] if sampled else 1)
+
+    def first_design(self) -> dict[str, float]:
+        """``designs()[0]`` without making the others."""
+        if any(p.sample is not None for p in self.parameters):
+            return self.designs(limit=1)[0]
+        return {p.name: p.values[0] for p in self.parameters}
+
+    def designs(self, limit: int | None = None) -> list[dict[str, float]]:
         """Every design, in a fixed order: the grid of value lists, times the sample."""
         grid = [p for p in self.parameters if p.sample is None]
         sampled = [p for p in self.parameters if p.sample is not None]
         points = [dict(zip([p.name for p in grid], combo, strict=True))
-                  for combo in itertools.product(*[p.values for p in grid])]
+                  for combo in itertools.islice(itertools.product(*[p.values for p in grid]),
+                                                limit)]
         if not sampled:
             return points
         rng = np.random.default_rng(self.seed)
@@ -130,7 +163,7 @@ class StudySpec:
         draws = [{p.name: float(p.low + u * (p.high - p.low)) for p, u in zip(sampled, row,
                                                                              strict=True)}
                  for row in unit]
-        return [{**g, **d} for g in points for d in draws]
+        return [{**g, **d} for g in points for d in draws][:limit]
 
     def trial_seed(self, design: Mapping[str, float], repeat: int) -> int:
         """A seed of the design's values and the repeat: the same trial gets the same seed
@@ -170,7 +203,7 @@ def _parameter(name: str, value: Any, path: str, source: str) -> Parameter:
         if extra or not (isinstance(bounds, list) and len(bounds) == 2):
             raise StudyError('a range is {range: [lo, hi], count: n}', path, source)
         lo, hi = (_number(b, f'{path}.range[{k}]', source) for k, b in enumerate(bounds))
-        return Parameter(name, tuple(np.linspace(lo, hi, count).tolist()))
+        return Parameter(name, tuple(np.linspace(lo, hi, count).tolist()), is_range=True)
     if 'sample' in value:
         if value['sample'] not in ('random', 'lhs') or set(value) - {'sample', 'low', 'high',
                                                                    'count'}:
@@ -312,6 +345,11 @@ def parse_study(data: Any, source: str = '<study>', study_path: Path | None = No
             raise StudyError(f'expected true or false, got {v!r}', 'perturb.drive_phase', source)
         if k != 'drive_phase' and not (_is_number(v) and v >= 0):
             raise StudyError(f'expected a spread >= 0, got {v!r}', f'perturb.{k}', source)
+        most = {'position_m': (MAX_PERTURB_POSITION_M, 'm'),
+                'angle_rad': (MAX_PERTURB_ANGLE_RAD, 'rad')}.get(k)
+        if most is not None and v > most[0]:
+            raise StudyError(f'a spread of at most {most[0]:g} {most[1]} (how a part arrives, '
+                             f'not where it is), got {v:g}', f'perturb.{k}', source)
     perturb = {k: (float(v) if k == 'drive_phase' else _number(v, f'perturb.{k}', source))
                for k, v in perturb.items()}
     record = data.get('record', 'none')
@@ -344,16 +382,23 @@ def parse_study(data: Any, source: str = '<study>', study_path: Path | None = No
                      reference=reference, convergence=convergence,
                      objective=objective['metric'], goal=objective.get('goal', 'max'),
                      source=source)
+    # counted before anything is built: a grid of 100 000 x 100 000 is refused at once
+    n = spec.design_count() * repeats
+    if n > MAX_TRIALS:
+        sizes = ' x '.join(str(p.count if p.sample else len(p.values)) for p in parameters
+                           if p.sample is None) or '1'
+        if sampled:
+            sizes += f' x {sampled[0].count} sampled'
+        raise StudyError(f'{sizes} designs x {repeats} repeats = {n} trials; a study may have '
+                         f'at most {MAX_TRIALS}: use fewer values or a sample', 'parameters',
+                         source)
     try:
         data_, scene_source = read_scene_data(scene)
     except SceneError as err:
         raise StudyError(str(err), 'scene', source) from None
     spec = replace(spec, scene_data=data_, scene_source=scene_source)
-    n = len(spec.designs()) * repeats
-    if n > MAX_TRIALS:
-        raise StudyError(f'{n} trials; a study may have at most {MAX_TRIALS}', 'parameters',
-                         source)
     check_designs(spec)
+    check_perturb(spec)
     check_metrics(spec)
     return spec
 
@@ -362,7 +407,7 @@ def check_metrics(spec: StudySpec) -> None:
     """An orientation a metric names (``fraction:`` / ``rest:``) must be one the scene's
     outcomes name: otherwise every trial would fail."""
     base, source = base_scene(spec)
-    data, values = scene_for(spec, base, spec.designs()[0])
+    data, values = scene_for(spec, base, spec.first_design())
     scene = parse_scene(data, source, values)
     names = sorted(name for name, _ in scene.outcomes.orientations)
     for k, metric in enumerate(spec.metrics):
@@ -380,21 +425,66 @@ def base_scene(spec: StudySpec) -> tuple[dict, str]:
 
 def check_designs(spec: StudySpec) -> None:
     """Each value of each parameter must give a valid scene (the others at the first
-    design's values), of a sampled one the ends of its interval (a scene checks its numbers
-    against intervals; 100 000 draws checked one by one took minutes); errors name the study
+    design's values) that runs ``duration`` within the step limit; a sampled parameter, a
+    range and a long list are checked at their two ends (a scene checks its numbers against
+    intervals; 100 000 draws checked one by one took minutes); errors name the study
     parameter and the value."""
     base, source = base_scene(spec)
-    first = spec.designs()[0]
-    checks = [(p.name, v) for p in spec.parameters
-              for v in ((p.low, p.high) if p.sample is not None else p.values)]
+    first = spec.first_design()
+    checks = [(p.name, v) for p in spec.parameters for v in p.checked_values()]
     for name, value in dict.fromkeys(checks):
         data, values = scene_for(spec, base, {**first, name: value})
         try:
-            parse_scene(data, source, values)
+            scene = parse_scene(data, source, values)
         except SceneError as err:
             raise StudyError(f'{value:g} gives an invalid scene: {err.path or ""} '
                              f'{err.message}'.replace('  ', ' '), f'parameters.{name}',
                              spec.source) from None
+        # what Simulator.check_duration would refuse in every trial, refused once here
+        h = scene.solver.time_step
+        if spec.duration_s / h > MAX_STEPS_PER_RUN:
+            raise StudyError(f'{spec.duration_s:g} s is more than {MAX_STEPS_PER_RUN:.0e} steps '
+                             f'of {h:g} s (with {name} = {value:g}); give at most '
+                             f'{MAX_STEPS_PER_RUN * h:g} s', 'duration', spec.source)
+
+
+def check_perturb(spec: StudySpec) -> None:
+    """Each part moved to each corner of its perturbation (the others where the scene puts
+    them), and each drive at either end of its swing when the phase is drawn, must start
+    outside the other bodies as the scene file's own start must: a part shifted into the
+    track would fail or pass through it in the trials that draw that shift. Like parameters,
+    each is checked at its extremes with the rest as the scene has it (the joint extreme of
+    the hook orienter's shipped study, a cup 0.2 mm low on a track swung 0.14 mm up, starts
+    0.5 mm deep, and its trials run)."""
+    dx, da = spec.perturb.get('position_m', 0.0), spec.perturb.get('angle_rad', 0.0)
+    if not (dx or da or spec.perturb.get('drive_phase')):
+        return
+    bodies = list(scene_of_design(spec, spec.first_design()).bodies)
+    cases = []                                     # (field, what, bodies)
+    for k, body in enumerate(bodies):
+        if body.type != 'dynamic' or not (dx or da):
+            continue
+        for shift in dict.fromkeys((sx * dx, sy * dx, sa * da) for sx in (-1, 1)
+                                   for sy in (-1, 1) for sa in (-1, 1)):
+            # the other parts held as if static: only the moved part's contacts are new
+            moved = [b if b.type != 'dynamic' else replace(b, type='static') for b in bodies]
+            moved[k] = replace(body, pose=body.pose + np.array(shift))
+            cases.append(('position_m' if dx else 'angle_rad',
+                          f'x {shift[0]:+g} m, y {shift[1]:+g} m, angle {shift[2]:+g} rad',
+                          moved))
+    if spec.perturb.get('drive_phase'):
+        for phase in (math.pi / 2, 3 * math.pi / 2):
+            cases.append(('drive_phase', f'drive phase {phase:.3g} rad',
+                          [b if b.vibration is None else
+                           replace(b, vibration=replace(b.vibration, phase=phase))
+                           for b in bodies]))
+    for field_, what, moved in cases:
+        try:
+            _check_start_overlap(moved, 'bodies')
+        except _Invalid as err:
+            raise StudyError(f'at its extreme ({what}) {err.message.split("; move")[0]}: make '
+                             'the spread smaller or start the part further from the other '
+                             'bodies', f'perturb.{field_}', spec.source) from None
 
 
 def scene_of_design(spec: StudySpec, design: Mapping[str, float]) -> Scene:
