@@ -223,7 +223,8 @@ def _study(args: argparse.Namespace) -> int:
 
     if args.workers is not None and args.workers < 1:
         raise ValueError(f'--workers must be at least 1, got {args.workers}')
-    summary = run_study(args.study, args.out, scheduler=args.scheduler, workers=args.workers)
+    summary = run_study(args.study, args.out, scheduler=args.scheduler, workers=args.workers,
+                        recompute=args.recompute)
     best = summary['best_design']
     print(f"{summary['trials']} trials ({summary['failed']} failed) of {len(summary['designs'])} "
           f"designs in {args.out}")
@@ -239,6 +240,12 @@ def _study(args: argparse.Namespace) -> int:
         print(f"  numerical error on {c['designs_measured']} designs ({c['method']}), "
               f"{c['cost_ratio']:.2f}x the trials' time; {len(summary['warnings'])} design "
               'metrics with an error beyond their interval (study.json: warnings)')
+    if summary['failed']:
+        # a study with failed trials is not a clean result: scripts must see it
+        first = summary.get('first_error') or 'see results.csv, column error'
+        print(f"feeder-sim: error: {summary['failed']} of {summary['trials']} trials failed; "
+              f'the first: {first}', file=sys.stderr)
+        return 1
     return 0
 
 
@@ -371,6 +378,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help='a Dask scheduler, e.g. tcp://HOST:8786 (default: a local cluster)')
     p.add_argument('--workers', type=int, metavar='N',
                    help='local cluster size (default: one process per core)')
+    p.add_argument('--recompute', action='store_true',
+                   help='--out holds trials of another spec (a changed duration, scene, '
+                        'perturbation or feeder_sim version): compute them all again instead '
+                        'of refusing')
     p.set_defaults(func=_study)
 
     p = sub.add_parser('compile', help='compile the kernels scenes need, ahead of their first '

@@ -206,10 +206,19 @@ def numerical_error_warnings(spec: StudySpec, designs: list[dict]) -> list[str]:
     return lines
 
 
+def _first_error(failed: list[dict]) -> str | None:
+    if not failed:
+        return None
+    row = failed[0]
+    reason = (str(row.get('error') or '').splitlines() or ['no reason stored'])[0]
+    return f"design {row.get('design')} repeat {row.get('repeat')}: {reason}"
+
+
 def write_summary(spec: StudySpec, rows: list[dict], out: Path, wall_s: float,
                   workers: int, convergence: dict | None = None) -> dict:
     designs = design_statistics(spec, rows)
     best = best_design(spec, designs)
+    failed = [r for r in rows if r.get('status') != 'ok']
     extra: dict[str, Any] = {}
     if convergence is not None:
         extra = {'convergence': convergence,
@@ -219,7 +228,9 @@ def write_summary(spec: StudySpec, rows: list[dict], out: Path, wall_s: float,
         'repeats': spec.repeats, 'seed': spec.seed, 'metrics': list(spec.metrics),
         'objective': {'metric': spec.objective, 'goal': spec.goal},
         'parameters': [p.name for p in spec.parameters],
-        'trials': len(rows), 'failed': sum(r.get('status') != 'ok' for r in rows),
+        'trials': len(rows), 'failed': len(failed),
+        # the reason of the first failed trial in the study's order (null: none failed)
+        'first_error': _first_error(failed),
         'wall_s': wall_s, 'workers': workers,
         'best_design': None if best is None else best['design'],
         # every trial of the study together (a drop test's resting distribution)
