@@ -268,7 +268,7 @@ def probe_scheduler(address: str, wait_s: float = PROBE_S) -> None:
         reason = err.strerror or type(err).__name__
         if isinstance(err, TimeoutError) or isinstance(err, socket.timeout):
             reason = f'no connection within {wait_s:g} s'
-        raise _scheduler_error(address, f'nothing answered ({reason})') from None
+        raise _scheduler_error(address, f'no Dask scheduler answered ({reason})') from None
     data = b''
     try:
         with sock:
