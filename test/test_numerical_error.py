@@ -17,6 +17,7 @@ from feeder_sim.cli import main
 from feeder_sim.model.builders import build, conveyor
 from feeder_sim.model.scene import parse_scene, scene_to_dict, SceneError, SolverSpec
 from feeder_sim.output.numerical_error import Companion, companion
+from feeder_sim.reports.accuracy import SlideRegime
 from feeder_sim.reports.pointmass import Conveyor, mean_speed
 from feeder_sim.run import run, run_with_error_estimate
 from feeder_sim.simulator import Simulator
@@ -288,3 +289,27 @@ def test_auto_meets_its_tolerance_against_the_exact_point_mass(capsys):
     result = run(sim, 0.1)
     assert result.summary['time_step_auto'] == pilot
     assert result.summary['time_step_s'] == pilot['time_step_s']
+
+
+@pytest.mark.parametrize('regime', [
+    SlideRegime(10.0, 0.0, 1.25, 0.8, 50.0),     # forward and back, mu_s > mu_d
+    SlideRegime(20.0, 3.0, 1.5, 0.5, 50.0),      # uphill stick-slip
+    SlideRegime(30.0, 5.0, 1.5, 0.8, 50.0),      # never sticks for long
+], ids=str)
+def test_auto_meets_one_percent_in_the_slide_regime(regime):
+    # The slide regime of the friction-law sweep (test_slide_conveying): the step auto picks
+    # keeps the mean speed over cycles 20-40 within 1 % of the exact point mass
+    scene = conveyor(psi=math.radians(regime.psi_deg), mu=regime.ratio * regime.mu_d,
+                     mu_dynamic=regime.mu_d, theta=math.radians(regime.theta_deg),
+                     gamma=regime.gamma, frequency_hz=regime.frequency_hz,
+                     method='time_stepping', start_with_track=True)
+    scene['solver']['time_step'] = 'auto'
+    del scene['solver']['tolerance']
+    sim = Simulator(build(scene))
+    assert sim.time_step_pilot['met']
+    f = regime.frequency_hz
+    sim.advance_to(20 / f)
+    s1 = sim.track_coordinates()[0][0]
+    sim.advance_to(40 / f)
+    v = (sim.track_coordinates()[0][0] - s1) * f / 20
+    assert v == pytest.approx(regime.reference(), rel=0.01)
