@@ -268,7 +268,7 @@ SLIDE_REGIMES = (
     SlideRegime(45.0, 5.0, 1.5, 0.5, 25.0),
     SlideRegime(30.0, 2.5, 1.0, 0.8, 100.0),
     SlideRegime(15.0, 5.0, 1.25, 0.95, 100.0),
-    SlideRegime(45.0, 0.0, 1.0, 0.2, 25.0),
+    SlideRegime(45.0, 0.0, 1.0, 0.5, 25.0),
     SlideRegime(15.0, 2.5, 1.5, 0.8, 50.0),
 )
 SLIDE_STEPS_PER_PERIOD = (100, 200, 400, 800, 1600)
@@ -305,7 +305,8 @@ def run_slide_regime(out_dir: str | os.PathLike,
         errors = {}
         for n in steps_per_period:
             speed = slide_speed(regime, 'time_stepping', 1.0 / (regime.frequency_hz * n))
-            errors[n] = abs(speed - exact) / abs(exact)
+            # a part that sticks all along has no speed to be relative to: m/s then
+            errors[n] = abs(speed - exact) / (abs(exact) or 1.0)
         rows.append({'regime': str(regime), 'reference_mps': exact,
                      'errors': {str(n): e for n, e in errors.items()}})
         say(f'slide regime {regime}: reference {exact:.6g} m/s, relative error '
@@ -329,7 +330,7 @@ def _plot_slide_regime(rows: Sequence[dict], steps_per_period: Sequence[int],
     ax.loglog(n, 4 * math.pi / n, 'k--', lw=1.5, label='2 (2 pi / N): first-order bound')
     ax.set_xlabel('time steps per vibration period N')
     ax.set_ylabel('relative error of the mean conveying speed')
-    ax.set_title('time_stepping in the slide regime (Gamma < 1) against the exact point mass')
+    ax.set_title('time_stepping, slide regime (Gamma < 1), vs the exact point mass', fontsize=10)
     ax.grid(True, which='both', alpha=0.3)
     ax.legend(fontsize=7, loc='upper left', bbox_to_anchor=(1.01, 1.0))
     fig.tight_layout()
