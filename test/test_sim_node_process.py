@@ -282,7 +282,10 @@ def test_help_prints_usage_and_starts_nothing(workspace):
     (['--ros-args', '--no-such-flag'], 'bad --ros-args'),
     (['--ros-args', '-p', 'time_step:=1e-300'], 'solver.time_step: 1e-300 is out of range'),
     (['--ros-args', '-p', 'duration:=1e300'], 'Parameter duration out of range'),
-], ids=['trailing -p', 'unknown flag', 'time step 1e-300', 'endless duration'])
+    (['--ros-args', '--params-file', '/no/such/params.yaml'],
+     '--params-file /no/such/params.yaml: no such file'),
+], ids=['trailing -p', 'unknown flag', 'time step 1e-300', 'endless duration',
+        'missing params file'])
 def test_bad_arguments_are_one_line_and_exit_2(workspace, argv, message):
     proc = run_node(workspace, *argv, timeout=60)
     assert proc.returncode == 2, proc.stderr

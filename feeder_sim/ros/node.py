@@ -882,6 +882,14 @@ def main(args: list[str] | None = None, stop: threading.Event | None = None,
     if '-h' in own or '--help' in own:
         print(usage())
         return 0
+    # rcl's own message for a params file it cannot read suggests nothing useful: name it
+    ros_args = argv[len(own):]
+    for flag, path in zip(ros_args, ros_args[1:]):
+        if flag == '--params-file' and not os.path.isfile(path):
+            print(f'sim_node: error: --params-file {path}: no such file (give the path of a '
+                  'YAML parameter file, e.g. config/sim_node.params.yaml)', file=sys.stderr)
+            _restore(previous)
+            return 2
     try:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     except Exception as err:   # rcl's argument errors come as several types
