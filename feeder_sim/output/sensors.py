@@ -12,6 +12,13 @@ between the two frames must lie on the segment. Crossings back (right to left) a
 counted, as a counter that knows the direction of flow would not. A part is followed by name,
 so parts that come and go (sources, sinks, services) are counted from the frame after they
 came.
+
+A crossing in either direction disarms the sensor for that part until the part's outline lies
+entirely on one side of the sensor's line again (touching it is allowed): a part resting
+across the line, sliding along it or vibrating about it has a centre of mass that wanders
+from side to side at every frame or every period of the drive, and a photo-eye would see one
+part that never left the beam, not one per wobble. A part that appears with its outline
+across the line is armed once it has been seen clear of it.
 """
 
 from __future__ import annotations
@@ -69,6 +76,14 @@ def _inside(x: np.ndarray, p: np.ndarray, q: np.ndarray) -> bool:
     return bool(np.count_nonzero(up & (x[0] < cross_x)) % 2)
 
 
+def _world_vertices(outlines: Sequence[np.ndarray], origin: np.ndarray,
+                    angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    rot = np.array([[c, -s], [s, c]])
+    return np.concatenate([np.asarray(o, dtype=float).reshape(-1, 2) for o in outlines]) \
+        @ rot.T + origin
+
+
 class SensorBank:
     """The scene's sensors, fed one frame at a time by :meth:`update`."""
 
@@ -83,6 +98,9 @@ class SensorBank:
         """Forget the parts' last positions and the counts (a reset of the simulation)."""
         self._last: dict[str, np.ndarray] = {}
         self.counts = [0] * len(self.specs)
+        # crossings right to left, which a reading does not report (see the module's doc)
+        self.counts_back = [0] * len(self.specs)
+        self._armed: list[dict[str, bool]] = [{} for _ in self.specs]
 
     def update(self, names: Sequence[str], com: np.ndarray, origin: np.ndarray,
                angle: np.ndarray, outlines: Mapping[str, Sequence[np.ndarray]]
@@ -91,23 +109,46 @@ class SensorBank:
         body-frame origins ``origin`` (n, 2), angles ``angle`` (n,) (world, m and rad) and
         their outlines by name (body frame, as the scene gives them)."""
         com = np.asarray(com, dtype=float).reshape(-1, 2)
+        origin = np.asarray(origin, dtype=float).reshape(-1, 2)
+        angle = np.asarray(angle, dtype=float).reshape(-1)
         now = {n: com[k].copy() for k, n in enumerate(names)}
         prev = np.array([self._last.get(n, (math.nan, math.nan)) for n in names],
                         dtype=float).reshape(-1, 2)
+        world: dict[int, np.ndarray] = {}
+
+        def vertices(k: int) -> np.ndarray:
+            if k not in world:
+                world[k] = _world_vertices(outlines[names[k]], origin[k], float(angle[k]))
+            return world[k]
+
         readings = []
         for s, spec in enumerate(self.specs):
             a, b = np.array(spec.start), np.array(spec.end)
             d = b - a
             s0, s1 = _side(a, d, prev), _side(a, d, com)
-            crossing = (s0 > 0.0) & (s1 <= 0.0)        # NaN (no last position) is False
+            # NaN (no last position) compares False: no crossing in a part's first frame
+            forth = (s0 > 0.0) & (s1 <= 0.0)
+            back = (s0 <= 0.0) & (s1 > 0.0)
+            armed = self._armed[s]
             passed = []
-            for k in np.flatnonzero(crossing):
+            for k in np.flatnonzero(forth | back):
+                if not armed.get(names[k], False):
+                    continue
                 lam = s0[k] / (s0[k] - s1[k])
                 point = prev[k] + lam * (com[k] - prev[k])
                 u = float(np.dot(point - a, d) / np.dot(d, d))
-                if 0.0 <= u <= 1.0:
+                if not 0.0 <= u <= 1.0:
+                    continue
+                armed[names[k]] = False
+                if forth[k]:
                     passed.append((names[k], self._orientation(float(angle[k]))
                                    if spec.kind == 'inspection' else ''))
+                else:
+                    self.counts_back[s] += 1
+            for k, n in enumerate(names):
+                if not armed.get(n, False):
+                    side = _side(a, d, vertices(k))
+                    armed[n] = bool(np.all(side >= 0.0) or np.all(side <= 0.0))
             self.counts[s] += len(passed)
             blocked = False
             if spec.kind == 'beam':
@@ -116,6 +157,9 @@ class SensorBank:
             readings.append(SensorReading(spec.name, spec.kind, blocked, self.counts[s],
                                           tuple(passed)))
         self._last = now
+        for armed in self._armed:
+            for n in [n for n in armed if n not in now]:
+                del armed[n]
         return tuple(readings)
 
     def _orientation(self, angle_rad: float) -> str:
