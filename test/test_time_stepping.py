@@ -56,8 +56,8 @@ def test_reference_impulse_lcp_holds_the_light_boxes_still():
     h = sim.scene.solver.time_step
     seen = []
 
-    def solve(cs, geo, todo, b_n, b_t, box, lo, hi, slip, half_vel, half_om, keys, p_n, p_t,
-              p_state):
+    def solve(cs, geo, todo, b_n, b_t, box, lo, hi, slip, colliding, half_vel, half_om, keys,
+              p_n, p_t, p_state):
         (i,) = np.flatnonzero(todo)
         order = geo.order
         v_t_pre = np.zeros(cs.n)
@@ -65,8 +65,8 @@ def test_reference_impulse_lcp_holds_the_light_boxes_still():
                                   v_t_pre, np.zeros(cs.n, bool), True, stepper.settings,
                                   sim.stats)
         seen.append(dv)
-        return original(cs, geo, todo, b_n, b_t, box, lo, hi, slip, half_vel, half_om, keys,
-                        p_n, p_t, p_state)
+        return original(cs, geo, todo, b_n, b_t, box, lo, hi, slip, colliding, half_vel,
+                        half_om, keys, p_n, p_t, p_state)
 
     original = stepper._solve
     stepper._solve = solve

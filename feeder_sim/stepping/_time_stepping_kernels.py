@@ -420,8 +420,8 @@ def _record_batch(ints, floats, sel, rows, work, res, converged):
 
 @inner(machine_inline=True)
 def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b_t, box, mu_lo,
-           mu_hi, mu_s, mu_d, slip, half_vel, half_om, at, point, order, todo, warm, st, ints,
-           floats, msgs, n_msgs):
+           mu_hi, mu_s, mu_d, slip, colliding, half_vel, half_om, at, point, order, todo, warm,
+           st, ints, floats, msgs, n_msgs):
     """``TimeStepper._solve`` (arrays in island order; ``at``: each contact's place in the
     previous step's ``warm``, -1 where new; ``point``: the contact points in the step's
     order, which ``order`` maps to island order; PGS sweeps a pile bottom-up by them): the
@@ -429,7 +429,8 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
     islands' answers, or ``ok`` False where the compiled Dantzig missed ``lcp_tol`` (the
     reference step takes over). ``slip``: the pre-step slip of each contact (m/s), and
     ``half_vel`` / ``half_om`` the bodies' free velocities at mid-step, for
-    ``stop_within_step`` and ``breakaway_within_step``."""
+    ``stop_within_step`` and ``breakaway_within_step`` (not in an island with a
+    ``colliding`` contact: an impact's impulse is not spread over the step)."""
     k = a.shape[0]
     n_isl = starts.shape[0] - 1
     lens = empty_i(ar, n_isl)
@@ -450,6 +451,14 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
         any_large = any_large or large[i]
     # the order PGS sweeps a pile in: bottom-up; nothing to sort without a pile
     height = _heights(ar, point, order, bodies.gravity) if any_large else empty_f(ar, 0)
+    # the friction law over the step is for smooth contact: an island with an impact keeps
+    # Kawachi's impact law (its normal impulses move between the first answer and the next)
+    steady = empty_b(ar, n_isl)
+    for i in range(n_isl):
+        steady[i] = small[i]
+    for q in range(k):
+        if colliding[q]:
+            steady[isl[q]] = False
     may_slide = empty_b(ar, k)
     sliding = empty_b(ar, k)
     any_slide = False
@@ -458,7 +467,7 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
         may_slide[q] = box[q] and mu_d[q] < mu_s[q]
         any_slide = any_slide or may_slide[q]
         # friction_rows gives a contact sliding into the step one-sided bounds
-        sliding[q] = box[q] and mu_lo[q] != mu_hi[q] and small[isl[q]]
+        sliding[q] = box[q] and mu_lo[q] != mu_hi[q] and steady[isl[q]]
         any_sliding = any_sliding or sliding[q]
     states_in = empty_i(ar, k)
     x_n, x_t = zeros_f(ar, k), zeros_f(ar, k)
@@ -544,7 +553,9 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
                     redo[i] = True
         # a static contact that holds on average but not throughout its part of the step
         if any_sliding or attempt == 0:
-            late = breakaway_within_step_inline(ar, small, starts, a, b, normal, r_a, r_b, box,
+            for i in range(n_isl):
+                steady[i] = steady[i] and small[i]
+            late = breakaway_within_step_inline(ar, steady, starts, a, b, normal, r_a, r_b, box,
                                                 slip, half_vel, half_om, v_t_end, mu_s, mu_d,
                                                 x_n, x_t, lo, hi, remain, attempt == 1)
             for i in range(n_isl):
@@ -818,8 +829,8 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
                 ar, n, starts, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o, bodies, b_no,
                 gather(ar, v_t_free, order), gather(ar, box, order), gather(ar, mu_lo, order),
                 gather(ar, mu_hi, order), gather(ar, mu_s, order), gather(ar, mu_d, order),
-                gather(ar, v_t_pre, order), half_vel, om, gather(ar, at, order), point, order,
-                neg, warm, st, step_ints, step_floats,
+                gather(ar, v_t_pre, order), gather(ar, colliding, order), half_vel, om,
+                gather(ar, at, order), point, order, neg, warm, st, step_ints, step_floats,
                 msgs, step_msgs)
             if not ok_solve:
                 return REFERENCE, warm, approach

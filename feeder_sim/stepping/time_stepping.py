@@ -226,7 +226,7 @@ def solve_impulses(world: World, cs: ContactSet, bodies: np.ndarray, b_n: np.nda
     may_slide = box & (cs.mu_dynamic < cs.mu_static)
     # the stop within the step as TimeStepper._solve takes it
     c = cs.n
-    sliding = box & (mu_lo != mu_hi)
+    sliding = box & (mu_lo != mu_hi) & ~colliding.any()
     offset, remain = np.zeros(c), np.ones(c)
     b_n, b_t = b_full[:c].copy(), b_full[c:].copy()
     impulse = None
@@ -845,7 +845,8 @@ class TimeStepper(StepperBase):
             np.add(half_vel, 0.5 * h * w.gravity, out=half_vel, where=self._dyn_col)
             failed = self._solve(cs, geo, neg, b_no, v_t_free[order],
                                  box[order], mu_lo[order], mu_hi[order], v_t_pre[order],
-                                 half_vel, state.omega, keys[order], p_n, p_t, p_state)
+                                 colliding[order], half_vel, state.omega, keys[order], p_n,
+                                 p_t, p_state)
             for i in failed:
                 # the numba Dantzig missed the tolerance: the reference path (lcp.solve's
                 # whole ladder) solves the island again
@@ -977,7 +978,7 @@ class TimeStepper(StepperBase):
                 float(gap.min(initial=np.inf)))
 
     def _solve(self, cs: ContactSet, geo: _IslandGeometry, todo, b_n, b_t, box, lo, hi, slip,
-               half_vel, half_om, keys, p_n, p_t, p_state) -> np.ndarray:
+               colliding, half_vel, half_om, keys, p_n, p_t, p_state) -> np.ndarray:
         """Islands with ``todo`` (the non-trivial ones): small ones by the numba Dantzig
         (or in one piece on the row states they had), large ones by PGS. In small islands a
         slip that stops within the step is held by ``mu_d`` up to that instant and by the
@@ -985,7 +986,8 @@ class TimeStepper(StepperBase):
         pass where a static bound saturated, and a static contact that holds on average but
         not throughout breaks away within the step (``breakaway_within_step``). Arrays b_n ..
         slip and keys are in island order (``order``; ``slip`` the pre-step slip, m/s;
-        ``half_vel`` / ``half_om`` the bodies' free velocities at mid-step). Writes p_n / p_t
+        ``half_vel`` / ``half_om`` the bodies' free velocities at mid-step; not in an island
+        with a ``colliding`` contact). Writes p_n / p_t
         and the small islands' row states p_state, and returns the islands whose Dantzig
         answer missed ``lcp_tol``."""
         w, st, stats = self.world, self.settings, self.stats
@@ -1015,8 +1017,10 @@ class TimeStepper(StepperBase):
         states = np.full(len(keys), -1)
         v_t_new = np.zeros(len(b_n))
         failed = np.zeros(len(lens), bool)
-        # friction_rows gives a contact sliding into the step one-sided bounds
-        sliding = box & (lo != hi) & small[isl]
+        # friction_rows gives a contact sliding into the step one-sided bounds; an island
+        # with an impact keeps Kawachi's impact law
+        steady = small & (np.add.reduceat(colliding.astype(np.int64), starts[:-1]) == 0)
+        sliding = box & (lo != hi) & steady[isl]
         offset = np.zeros(len(keys))
         remain = np.ones(len(keys))
         v_t_end = b_t.copy()        # the free end slip, before a stop's impulse shifts b_t
@@ -1066,7 +1070,8 @@ class TimeStepper(StepperBase):
             if sliding.any() or attempt == 0:
                 _, a, b, normal, _, r_a, r_b = geo.kernel_args[:7]
                 redo |= K.breakaway_within_step(
-                    heap_state(), small & ~failed, starts, a, b, normal, r_a, r_b, box, slip,
+                    heap_state(), steady & small & ~failed, starts, a, b, normal, r_a, r_b, box,
+                    slip,
                     half_vel, half_om, v_t_end, mu_s, mu_d, x_n, x_t, lo, hi, remain,
                     attempt == 1)
             if not redo.any():
