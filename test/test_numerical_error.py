@@ -152,14 +152,13 @@ def cluster():
         yield c.scheduler_address
 
 
-# The hook orienter's 6 mm hook with the cups touching sits at the jam threshold: which cup
-# jams, and when, depends on the step itself (cups fed in 5 s at 2x, 1x, 1/2, 1/4 and 1/8 of
-# the step: 4, 5, 6, 3, 4; bracketed here only at equality, 2 <= 2). No estimate from one
-# companion run can promise to bracket such a design; it is named here, and every other
-# design must be bracketed. The 6.75 mm hook with the cups touching is the threshold's other
-# side: jammed 0 at the step and at its half, 1 at its quarter (one trial each).
-CHAOTIC = {'hook_orienter': [{'hook_height': 0.006, 'cup_gap': 0.0},
-                             {'hook_height': 0.00675, 'cup_gap': 0.0}]}
+# A design at the jam threshold (the hook orienter's low hooks with the cups touching) jams or
+# not, and which cup, by the step itself (the 6 mm hook fed 4, 5, 6, 3, 4 cups in 5 s at 2x,
+# 1x, 1/2, 1/4 and 1/8 of the step): no estimate from one companion run can promise to bracket
+# it. Such a design is recognised by its jam, not named: `jammed` differs between the step,
+# its half (a numerical error above 0) or its quarter. Every other design must be bracketed in
+# every metric, and at most MAX_AT_THRESHOLD designs may be at the threshold.
+MAX_AT_THRESHOLD = 3
 
 
 @pytest.mark.slow
@@ -173,8 +172,8 @@ def test_a_studys_numerical_error_brackets_a_four_times_refined_run(tmp_path, cl
     end counts or not by a step's difference): per design and metric,
     |base - run at 4x refined setting| <= the reported numerical error (time_stepping: a
     quarter of the step; event_driven: the tolerance / 100^2), to 1e-9 of the value (the
-    round-off of a feed rate's time span); except the designs at the jam threshold
-    (``CHAOTIC``)."""
+    round-off of a feed rate's time span); except the designs at the jam threshold (see
+    ``MAX_AT_THRESHOLD``)."""
     spec = dataclasses.replace(load_study(STUDIES / f'{name}.yaml'), duration_s=duration_s,
                                repeats=1, convergence=True)
     summary = run_study(spec, tmp_path / 'study', scheduler=cluster, plots=False)
@@ -183,8 +182,12 @@ def test_a_studys_numerical_error_brackets_a_four_times_refined_run(tmp_path, cl
     assert summary['failed'] == fine['failed'] == 0
     assert summary['convergence']['designs_measured'] == len(spec.designs())
     rows = list(csv.DictReader(open(tmp_path / 'study' / 'results.csv')))
-    changed, missed = 0, []
+    changed, missed, at_threshold = 0, [], 0
     for d, f, row in zip(summary['designs'], fine['designs'], rows, strict=True):
+        jam = d['metrics'].get('jammed')
+        threshold = jam is not None and (jam['numerical_error'] > 0
+                                          or jam['mean'] != f['metrics']['jammed']['mean'])
+        at_threshold += threshold
         for metric in spec.metrics:
             base, ref = d['metrics'][metric]['mean'], f['metrics'][metric]['mean']
             error = d['metrics'][metric]['numerical_error']
@@ -193,10 +196,12 @@ def test_a_studys_numerical_error_brackets_a_four_times_refined_run(tmp_path, cl
                 continue
             if abs(base - ref) > error + 1e-9 * abs(ref):
                 missed.append((d['design'], metric, base, ref, error))
-                assert d['parameters'] in CHAOTIC.get(name, []), missed[-1]
+                assert threshold, missed[-1]
             changed += abs(base - ref) > 1e-9 * abs(ref)
+    assert at_threshold <= MAX_AT_THRESHOLD
     print(f'{name}: {changed} design-metrics differ from the 4x refined run; not bracketed: '
-          f'{missed}; cost ratio {summary["convergence"]["cost_ratio"]:.2f}')
+          f'{missed} ({at_threshold} designs at the jam threshold); cost ratio '
+          f'{summary["convergence"]["cost_ratio"]:.2f}')
 
 
 def test_study_json_csv_warnings_and_plots(tmp_path, cluster):

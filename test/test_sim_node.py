@@ -100,14 +100,23 @@ class Graph:
         return pub
 
     def close(self) -> None:
-        if self.node is not None:
-            self.node.close()
-            # destroyed, not left to the garbage collector: a lingering node keeps its latched
-            # geometry writer alive, and the next test's late subscriber would receive it
-            self.node.destroy_node()
-        self.probe.destroy_node()
-        self.executor.shutdown()
-        rclpy.shutdown(context=self.context)
+        # every step runs even when one fails (a test may leave the node's callbacks patched):
+        # a node left alive is a namesake that makes the next test's node stop itself
+        try:
+            if self.node is not None:
+                try:
+                    self.node.close()
+                finally:
+                    # destroyed, not left to the garbage collector: a lingering node keeps its
+                    # latched geometry writer alive, and the next test's late subscriber would
+                    # receive it
+                    self.node.destroy_node()
+        finally:
+            try:
+                self.probe.destroy_node()
+                self.executor.shutdown()
+            finally:
+                rclpy.shutdown(context=self.context)
 
 
 @pytest.fixture

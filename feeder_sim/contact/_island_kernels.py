@@ -1088,7 +1088,8 @@ def _keep_pressing(ar, lo_c, hi_c, c, a, b, ja, jb, ma, mb, x_n, dv):
                 s += mb[kj, 0] * jb[k, 0] + mb[kj, 1] * jb[k, 1] + mb[kj, 2] * jb[k, 2]
             W[i, j] = s
             amax = max(amax, abs(s))
-    y = _dz_solve(ar, W, rhs, amax, full_i(ar, 2, 0))
+    counts = full_i(ar, 2, 0)       # named, as every caller of _dz_solve does
+    y = _dz_solve(ar, W, rhs, amax, counts)
     for i in range(m):
         k = rows[i]
         for j in range(3):
