@@ -255,6 +255,10 @@ def test_construction_rejects_bad_parameters():
             g.start(scene='no_such_scene')
         with pytest.raises(ValueError, match="log_time must be 'wall' or 'sim'"):
             g.start(log_time='gps')
+        # each refused node has left the graph (the exceptions above still hold them): a
+        # lingering one would be a namesake that makes the next node stop itself
+        g.spin_for(0.2)
+        assert ('feeder_sim', '/') not in g.probe.get_node_names_and_namespaces()
     finally:
         g.close()
 
@@ -320,9 +324,6 @@ def test_qos_can_be_overridden_by_parameter(graph):
     assert node.pub_contacts.qos_profile.reliability == ReliabilityPolicy.RELIABLE
 
 
-@pytest.mark.xfail(strict=False, reason='in the full suite a /feeder_sim node of an earlier '
-                   'test stays visible to the namesake check and the node under test stops '
-                   'itself; passes alone')
 def test_real_time_factor_paces_and_changes_at_run_time(graph):
     node = graph.start(real_time_factor=1.0)
     graph.spin_for(0.3)
@@ -516,9 +517,6 @@ print(n / (time.monotonic() - t0), flush=True)
 '''
 
 
-@pytest.mark.xfail(strict=False, reason='in the full suite a /feeder_sim node of an earlier '
-                   'test stays visible to the namesake check and the node under test stops '
-                   'itself; passes alone')
 def test_a_command_flood_does_not_stall_the_simulation(graph):
     node = graph.start(real_time_factor=0.0)
     graph.spin_until(lambda: node.frames > 20)
@@ -621,9 +619,6 @@ def test_reset_while_recording_starts_an_episode_with_monotonic_log_time(graph, 
     assert len(marks) == 1 and 'reset' in str(marks[0])
 
 
-@pytest.mark.xfail(strict=False, reason='in the full suite a /feeder_sim node of an earlier '
-                   'test stays visible to the namesake check and the node under test stops '
-                   'itself; passes alone')
 def test_a_second_node_of_the_same_name_refuses_to_run(graph):
     from feeder_sim.ros.node import _NAMESAKE_WINDOW_S
     first = graph.start(real_time_factor=1.0)
@@ -657,9 +652,6 @@ def test_a_node_in_its_own_namespace_runs_but_is_told_of_a_shared_clock(graph, c
     assert not first.done
 
 
-@pytest.mark.xfail(strict=False, reason='in the full suite a /feeder_sim node of an earlier '
-                   'test stays visible to the namesake check and the node under test stops '
-                   'itself; passes alone')
 def test_a_fed_scene_publishes_the_parts_as_they_come_and_go(graph):
     # sources add a box every 0.5 s, a sink takes them away 0.15 m on: the poses' length
     # follows, track_state names them, the node keeps going and deletes a leaving part's
@@ -806,9 +798,6 @@ def test_part_services_add_place_and_remove_parts_at_the_next_frame(graph, resti
     assert actions == [('second', 0), ('second', 2), ('box_1', 0)]
 
 
-@pytest.mark.xfail(strict=False, reason='in the full suite a /feeder_sim node of an earlier '
-                   'test stays visible to the namesake check and the node under test stops '
-                   'itself; passes alone')
 def test_the_example_controller_keeps_the_queue_between_its_thresholds_for_a_minute(
         graph, tmp_path):
     # examples/queue_controller.py against the node on config/queue_cell.yaml: after the

@@ -211,6 +211,18 @@ class SimNode(Node):
         self._exception_types: set[str] = set()
         self._last_exception = ''
         super().__init__(NODE_NAME, **node_options)
+        try:
+            self._set_up()
+        except BaseException:
+            # A node that failed to start leaves the graph now: left to the garbage collector,
+            # its name would stay visible for an unknown time, and a node started after it
+            # would take it for a namesake and refuse to run.
+            if hasattr(self, '_closing'):
+                self.close()
+            self.destroy_node()
+            raise
+
+    def _set_up(self) -> None:
         # `-p duration:=20` arrives as an INTEGER: a whole number is a fine double
         for name, given in list(self._parameter_overrides.items()):
             self._parameter_overrides[name] = _as_declared(given)
