@@ -24,18 +24,18 @@ from feeder_sim.contact._feature_kernels import sum_by_feature
 from feeder_sim.contact.dynamics import SolverStats
 from feeder_sim.model.checks import is_number
 from feeder_sim.model.scene import (
+    check_placement,
     load_scene,
     MAX_ANGLE_RAD,
     MAX_LENGTH_M,
     MAX_SPEED_MPS,
     MAX_SPIN_RAD_S,
     MIN_TIME_STEP_S,
+    overlap_problem,
     override_solver,
     parse_scene,
     Scene,
-    scene_to_dict,
     SceneError,
-    within_bounds,
 )
 from feeder_sim.model.vibration import check_command
 from feeder_sim.model.world import State, World
@@ -470,8 +470,16 @@ class Simulator:
         if check_energy is None and os.environ.get(CHECK_ENERGY_VAR):
             check_energy = _env_tolerance(os.environ[CHECK_ENERGY_VAR])
         self.energy_check = None if check_energy is None else EnergyCheck(self, check_energy)
-        self._stepper = self._make_stepper()
+        self._stepper_made = self._make_stepper()
         self.feed = Feed(scene) if scene.sources or scene.sinks else None
+
+    @property
+    def _stepper(self):
+        """The stepping method of the world as it is, made at its first use after the world
+        changed: parts added or taken away between two frames make it once."""
+        if self._stepper_made is None:
+            self._stepper_made = self._make_stepper()
+        return self._stepper_made
 
     def _make_stepper(self):
         spec = self.scene.solver
@@ -517,6 +525,7 @@ class Simulator:
             while True:
                 arrival = self.feed.next_arrival()
                 self._step_to(min(t_end, arrival))
+                self._trust_state()        # the simulation's own values, not a caller's
                 if arrival > t_end or arrival > self.t + 1e-12:
                     break
                 self.feed.arrive(self)
@@ -683,7 +692,7 @@ class Simulator:
                 d.reset()
         self.state = self.world.initial_state()
         self._log = _ImpulseLog()
-        self._stepper = self._make_stepper()
+        self._stepper_made = self._make_stepper()
         if self.energy_check is not None:
             self.energy_check.reference_j = self.mechanical_energy()
         if self.feed is not None:
@@ -695,11 +704,28 @@ class Simulator:
                  velocity: Sequence[float] = (0.0, 0.0, 0.0)) -> None:
         """From now on, a new dynamic part shaped and made as the scene's body ``template``,
         its body frame at ``pose`` ([x, y, angle], m and rad) moving at ``velocity`` ([vx, vy,
-        omega], m/s and rad/s). Checked as a scene file is (SceneError: a taken name, a pose
-        inside another body, ...)."""
-        body = replace(self.template_body(template), name=name, pose=_triple(pose, 'pose'),
-                       velocity=_triple(velocity, 'velocity'))
-        self._rebuild([*self._now(), body], [*range(self.world.n), None])
+        omega], m/s and rad/s). Its fields are checked as a scene file's, and its place
+        against the world as it is now (SceneError: a taken name, a pose inside another
+        body, ...); what was accepted before is not checked again, and the cost does not
+        depend on the drive's phase."""
+        self._check_state()
+        body = self.template_body(template)
+        name, pose, velocity = check_placement(name, _triple(pose, 'pose'),
+                                               _triple(velocity, 'velocity'))
+        if name in self.world.names:
+            raise SceneError(f'duplicate body name {name!r}: a body of the world has it; give '
+                             f'the part a name no body has (e.g. {self.free_name(template)!r})',
+                             'name', source='')
+        body = replace(body, name=name, pose=pose, velocity=velocity)
+        world = self.world.with_part(body)
+        index = world.n - 1
+        s = self.state
+        cos, sin = math.cos(pose[2]), math.sin(pose[2])
+        com = pose[:2] + np.array([[cos, -sin], [sin, cos]]) @ world.com_local[index]
+        state = State(s.t, np.vstack((s.position, com)), np.append(s.angle, pose[2]),
+                      np.vstack((s.velocity, velocity[:2])), np.append(s.omega, velocity[2]))
+        self._check_clear(world, state, index, name)
+        self._change_world(world, state, index)
 
     def template_body(self, template: str):
         """The dynamic body ``template`` of the scene now or as it started: a template may
@@ -721,19 +747,27 @@ class Simulator:
 
     def remove_part(self, name: str) -> None:
         """The dynamic part ``name`` leaves the simulation (a sink, a part taken away)."""
-        index = self._part_index(name)
-        keep = [i for i in range(self.world.n) if i != index]
-        bodies = self._now()
-        self._rebuild([bodies[i] for i in keep], keep)
+        self._check_state()
+        self._remove(self._part_index(name))
+        self._change_world(self.world, self.state)
 
     def set_part_pose(self, name: str, pose: Sequence[float],
                       velocity: Sequence[float] = (0.0, 0.0, 0.0)) -> None:
-        """Put the part ``name`` at ``pose`` moving at ``velocity`` (units of add_part)."""
+        """Put the part ``name`` at ``pose`` moving at ``velocity`` (units and checks of
+        add_part)."""
+        self._check_state()
         index = self._part_index(name)
-        bodies = self._now()
-        bodies[index] = replace(bodies[index], pose=_triple(pose, 'pose'),
-                                velocity=_triple(velocity, 'velocity'))
-        self._rebuild(bodies, list(range(self.world.n)), given={index})
+        _, pose, velocity = check_placement(name, _triple(pose, 'pose'),
+                                            _triple(velocity, 'velocity'))
+        s = self.state.copy()
+        cos, sin = math.cos(pose[2]), math.sin(pose[2])
+        s.position[index] = pose[:2] + np.array([[cos, -sin], [sin, cos]]) @ \
+            self.world.com_local[index]
+        s.angle[index] = pose[2]
+        s.velocity[index] = velocity[:2]
+        s.omega[index] = velocity[2]
+        self._check_clear(self.world, s, index, name)
+        self._change_world(self.world, s, index)
 
     def _part_index(self, name: str) -> int:
         names = self.world.names
@@ -742,67 +776,74 @@ class Simulator:
             raise UnknownPart(f'no part named {name!r}; parts: {parts}')
         return names.index(name)
 
-    def _now(self) -> list:
-        """The scene's bodies with the parts where they are now and moving as they are."""
-        origin, angle = self.world.body_frame_pose(self.state)
-        bodies = list(self.scene.bodies)
-        for i in self.part_indices:
-            theta = angle[i]
-            if abs(theta) > MAX_ANGLE_RAD:
-                # a part that turned over many times: the same orientation, within the bounds
-                theta = math.remainder(theta, 2.0 * math.pi)
-            bodies[i] = replace(bodies[i], pose=np.array([*origin[i], theta]),
-                                velocity=np.array([*self.state.velocity[i], self.state.omega[i]]))
-        return bodies
+    def _check_clear(self, world: World, state: State, index: int, name: str) -> None:
+        """Refuse (SceneError on ``pose``) a part ``index`` placed deeper than a scene file
+        allows inside a body where the bodies are at ``state`` (a vibrating track where its
+        drive has it now)."""
+        position = state.position
+        reach = world.radius + world.radius[index]
+        near = np.flatnonzero(np.sum((position - position[index]) ** 2, axis=1) <= reach ** 2)
+        mine = world.piece_outlines(state, index)
+        for other in near[near != index].tolist():
+            for piece in world.piece_outlines(state, other):
+                for own in mine:
+                    problem = overlap_problem(name, own, world.names[other], piece,
+                                              f'at t = {state.t:.6g} s')
+                    if problem:
+                        raise SceneError(problem, 'pose', source='')
 
-    def _without_lost(self, bodies: list, old_index: list[int | None],
-                      given: set[int]) -> tuple[list, list]:
-        """``bodies`` without the parts that left the world (past the bounds a scene can hold,
-        ``scene.within_bounds``, or not finite: a part that fell off a track with nothing
-        below it): each is taken away, listed in ``lost_parts`` (time, name), logged, and
-        counted as ``lost`` by the feed. New parts and the bodies at the positions ``given``
-        carry the caller's numbers: those are checked as a scene's, never taken away."""
-        keep = [k for k, body in enumerate(bodies)
-                if body.type != 'dynamic' or old_index[k] is None or k in given
-                or within_bounds(body.pose, body.velocity)]
-        if len(keep) == len(bodies) or not keep:
-            return bodies, old_index
-        for k in sorted(set(range(len(bodies))) - set(keep)):
-            name = bodies[k].name
-            self.lost_parts.append((self.state.t, name))
-            if self.feed is not None:
-                self.feed.events.append((self.state.t, name, 'lost'))
-            log.warning('%s: part %r left the world by t = %.6f s (at %s m, moving at %s m/s); '
-                        'taken away', self.scene.name, name, self.state.t,
-                        np.array2string(bodies[k].pose[:2], precision=4),
-                        np.array2string(bodies[k].velocity[:2], precision=4))
-        return [bodies[k] for k in keep], [old_index[k] for k in keep]
-
-    def _rebuild(self, bodies: list, old_index: list[int | None],
-                 given: set[int] = frozenset()) -> None:
-        """A world of ``bodies`` (body k was body ``old_index[k]``, None: new; the bodies at
-        the positions ``given`` as the caller set them) at the current time: validated as a
-        scene, drives carried over (with the commands they received), the stepper started
-        afresh; contacts not yet taken are dropped."""
-        bodies, old_index = self._without_lost(bodies, old_index, given)
-        # checked as a scene file, without the sources and sinks (their templates may have
-        # left: the feed keeps its own copies)
-        data = scene_to_dict(replace(self.scene, bodies=tuple(bodies), sources=(), sinks=()))
-        scene = parse_scene(data, self.scene.source)
-        scene = replace(scene, solver=self.scene.solver, parameters=self.scene.parameters,
-                        sources=self.scene.sources, sinks=self.scene.sinks)
-        drives = self.world.drives
-        world = World.from_scene(scene)
-        world = replace(world, drives=tuple(
-            drives[j] if j is not None else None for j in old_index))
-        state = world.initial_state()
-        state.t = self.state.t
-        world.apply_prescribed_motion(state)
-        self._start_index = [old_index.index(j) if j in old_index else None
+    def _remove(self, index: int) -> None:
+        """Take body ``index`` out of the world and the state (the stepper is made anew by
+        :meth:`_change_world`)."""
+        s, keep = self.state, np.arange(self.world.n) != index
+        self.world = self.world.without_body(index)
+        self.state = State(s.t, s.position[keep], s.angle[keep], s.velocity[keep],
+                           s.omega[keep])
+        self.scene = replace(self.scene, bodies=self.world.scene.bodies)
+        self._start_index = [None if j is None or j == index else j - (j > index)
                              for j in self._start_index]
-        self.scene, self.world, self.state = scene, world, state
+
+    def _take_away_lost(self, keep: int | None) -> None:
+        """Take away the parts that left the world (past the bounds a scene can hold,
+        ``scene.within_bounds``, or not finite: a part that fell off a track with nothing
+        below it), but not part ``keep``: each is listed in ``lost_parts`` (time, name),
+        logged, and counted as ``lost`` by the feed."""
+        s, dynamic = self.state, self.world.dynamic
+        origin, _ = self.world.body_frame_pose(s)
+        inside = (np.all(np.abs(origin) <= MAX_LENGTH_M, axis=1)
+                  & np.all(np.abs(s.velocity) <= MAX_SPEED_MPS, axis=1)
+                  & (np.abs(s.omega) <= MAX_SPIN_RAD_S) & np.isfinite(s.angle))
+        lost = np.flatnonzero(dynamic & ~inside)
+        for index in lost[::-1].tolist():
+            if index == keep or self.world.n == 1:
+                continue
+            name = self.world.names[index]
+            self.lost_parts.append((s.t, name))
+            if self.feed is not None:
+                self.feed.events.append((s.t, name, 'lost'))
+            log.warning('%s: part %r left the world by t = %.6f s (at %s m, moving at %s m/s); '
+                        'taken away', self.scene.name, name, s.t,
+                        np.array2string(origin[index], precision=4),
+                        np.array2string(s.velocity[index], precision=4))
+            self._remove(index)
+            keep = keep - (keep > index) if keep is not None else None
+
+    def _change_world(self, world: World, state: State, placed: int | None = None) -> None:
+        """From now on ``world`` at ``state``: drives go on with the commands they received,
+        the parts that left the world are taken away (not part ``placed``, whose numbers are
+        a caller's, checked), the stepper starts afresh; contacts not yet taken are dropped
+        (their body indices may be stale)."""
+        self.scene = replace(self.scene, bodies=world.scene.bodies)
+        self.world, self.state = world, state
+        world.apply_prescribed_motion(state)
+        self._take_away_lost(placed)
+        # the state was checked before the change, the placed part's numbers by the change:
+        # the new arrays hold the simulation's own values (a part spun past the bounds a
+        # caller may set is not refused at the next advance)
+        self._check_arrays()
+        self._trust_state()
         self._log = _ImpulseLog()
-        self._stepper = self._make_stepper()
+        self._stepper_made = None
         if self.energy_check is not None:
             self.energy_check.reference_j = self.mechanical_energy()
 

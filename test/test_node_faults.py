@@ -10,18 +10,22 @@ from __future__ import annotations
 
 import copy
 import math
+import random
 import re
 import time
 
 from geometry_msgs.msg import PoseArray
 from hypothesis import given, settings
 from hypothesis import strategies as st
+import numpy as np
 import pytest
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import SetBool, Trigger
 import test_sim_node as base
+from test_world_changes import TOP, vertical_track_scene
+import yaml
 
-from feeder_sim.model.scene import MAX_LENGTH_M, MAX_SPEED_MPS, MAX_SPIN_RAD_S
+from feeder_sim.model.scene import MAX_LENGTH_M, MAX_SPEED_MPS, MAX_SPIN_RAD_S, scene_to_dict
 from feeder_sim.ros import node as sim_node
 
 srv = pytest.importorskip('feeder_sim_interfaces.srv')
@@ -239,3 +243,59 @@ def test_an_unexpected_exception_in_any_callback_is_a_refusal_and_the_node_runs_
     # logged once per type of exception, in one line each
     err = capfd.readouterr().err
     assert err.count('ZeroDivisionError') == 1 and err.count('FloatingPointError') == 1
+
+
+def test_parts_come_and_go_at_any_phase_of_a_vertical_stroke(graph, tmp_path):
+    """Spawn, move and delete at random moments of a simulated minute on a track moving
+    straight up and down (the parts ride 4 mm below their scene-file places at the low
+    point): each request is answered within 2 s, done or refused in one sentence, and the
+    node runs on with what the answers said."""
+    path = tmp_path / 'vertical.yaml'
+    path.write_text(yaml.safe_dump(scene_to_dict(vertical_track_scene())))
+    node = graph.start(scene=str(path), real_time_factor=4.0, method='time_stepping')
+    rng = random.Random(3)
+    clients = {name: graph.client(kind, f'/feeder_sim/{name}') for name, kind in (
+        ('spawn_entity', srv.SpawnEntity), ('set_entity_state', srv.SetEntityState),
+        ('delete_entity', srv.DeleteEntity))}
+    expected = {'box', 'rider'}
+    outcomes: dict[str, int] = {}
+    while node.sim.t < 60.0:
+        graph.spin_for(rng.uniform(0.0, 0.02))
+        what = rng.choice(['spawn_entity'] * 3 + ['set_entity_state', 'delete_entity'] * 2)
+        x, y = rng.uniform(-0.45, 0.45), TOP + rng.uniform(-0.006, 0.02)
+        pose = _pose_stamped(x, y, rng.uniform(-math.pi, math.pi))
+        if what == 'spawn_entity':
+            request = srv.SpawnEntity.Request(name='', uri='box', initial_pose=pose)
+        elif what == 'set_entity_state':
+            request = srv.SetEntityState.Request(entity=rng.choice(sorted(expected | {'x'})),
+                                                 pose=pose)
+        else:
+            request = srv.DeleteEntity.Request(entity=rng.choice(sorted(expected | {'x'})))
+        asked = time.monotonic()
+        reply = _answer(graph, clients[what], request)
+        assert time.monotonic() - asked < ANSWER_S, what
+        code = reply.result.result
+        assert code in (Result.RESULT_OK, Result.RESULT_OPERATION_FAILED,
+                        Result.RESULT_NOT_FOUND), (what, reply.result.error_message)
+        assert '\n' not in reply.result.error_message
+        if code == Result.RESULT_OK and what == 'spawn_entity':
+            expected.add(reply.entity_name)
+        elif code == Result.RESULT_OK and what == 'delete_entity':
+            expected.discard(request.entity)
+        said = reply.result.error_message
+        key = f'{what}: ' + ('done' if code == Result.RESULT_OK else 'overlap' if ' overlap by '
+                             in said else 'no such part' if 'no part named' in said else said)
+        outcomes[key] = outcomes.get(key, 0) + 1
+    print(sorted(outcomes.items()))
+    assert not node.done and node.callback_exceptions == 0
+    assert set(node.sim.part_poses()[0]) == expected - {n for _, n in node.sim.lost_parts}
+    done = sum(v for k, v in outcomes.items() if k.endswith('done'))
+    assert done >= 50 and len(outcomes) == 7, outcomes     # every kind of answer came
+    s = node.sim.state
+    assert all(np.isfinite(a).all() for a in (s.position, s.velocity, s.angle, s.omega))
+
+
+def _answer(graph, client, request):
+    future = client.call_async(request)
+    graph.spin_until(future.done, timeout_s=ANSWER_S)
+    return future.result()

@@ -786,8 +786,17 @@ def test_numbers_may_be_expressions_of_named_parameters():
     ({'bodies[1].mass': '+'.join(['0.001'] * 50_000)}, {}, 'bodies[1].mass',
      'an expression of 299999 characters'),
     ({'bodies[1].mass': '-' * 990 + '0.01'}, {}, 'bodies[1].mass', 'nested too deeply'),
+    ({'bodies[1].pose[1]': '2 ** 1000000'}, {}, 'bodies[1].pose[1]',
+     'beyond the largest double'),
+    ({'bodies[1].pose[1]': 'True + half_width'}, {}, 'bodies[1].pose[1]',
+     'True is not a number'),
+    ({'bodies[1].pose[1]': '(mu > 0.1) * half_width'}, {}, 'bodies[1].pose[1]',
+     'a comparison or a logical operation is not a number'),
+    ({'bodies[1].pose[1]': 'half_width or 1'}, {}, 'bodies[1].pose[1]',
+     'a comparison or a logical operation is not a number'),
 ], ids=['out of bounds', 'unknown', 'undefined name', 'no calls', 'zero division',
-        'huge power', 'text result', 'function name', 'bad name', 'long', 'deep'])
+        'huge power', 'text result', 'function name', 'bad name', 'long', 'deep',
+        'beyond double', 'boolean', 'comparison', 'logical'])
 def test_parameter_and_expression_errors_name_the_key(changes, given, path, fragment):
     data = copy.deepcopy(PARAMETRIC)
     for key, value in changes.items():

@@ -14,6 +14,7 @@ comments) count as absent. ``track: null`` means "no track body".
 
 from __future__ import annotations
 
+import ast
 from collections.abc import Callable, Mapping
 from contextvars import ContextVar
 from dataclasses import dataclass, field, fields, replace
@@ -413,6 +414,7 @@ def _evaluate(text: str, path: str, values: Mapping[str, float]) -> float:
     evaluator = simpleeval.SimpleEval(names={**EXPRESSION_CONSTANTS, **values},
                                       functions=EXPRESSION_FUNCTIONS)
     try:
+        _refuse_truth_values(text, path)
         result = evaluator.eval(text)
     except (RecursionError, MemoryError):
         raise _Invalid(path, f'{text[:40]!r}... is nested too deeply to evaluate; write it '
@@ -425,7 +427,26 @@ def _evaluate(text: str, path: str, values: Mapping[str, float]) -> float:
                              'functions: ' + ', '.join(sorted(EXPRESSION_FUNCTIONS))) from None
     if not is_number(result):
         raise _Invalid(path, f'{text!r} gives {_describe(result)}, not a number')
-    return float(result)
+    try:
+        return float(result)
+    except OverflowError:
+        raise _Invalid(path, f'{text!r} gives a number beyond the largest double (1.8e308); '
+                             'expressions must stay within the field\'s range') from None
+
+
+# Python counts True as 1 and comparisons give truth values: in an expression, `True + h` or
+# `(h > 1) * 2` would be taken as numbers; a scene's values are numbers, never truth values.
+_TRUTH_NODES = (ast.Compare, ast.BoolOp, ast.Not)
+
+
+def _refuse_truth_values(text: str, path: str) -> None:
+    for node in ast.walk(ast.parse(text.strip(), mode='eval')):
+        constant = isinstance(node, ast.Constant) and (node.value is None or isinstance(
+            node.value, bool))
+        if constant or isinstance(node, _TRUTH_NODES):
+            what = (repr(node.value) if constant else 'a comparison or a logical operation')
+            raise _Invalid(path, f'cannot evaluate {text!r}: {what} is not a number; '
+                                 'expressions are arithmetic of numbers and parameters')
 
 
 def _looks_numeric(text: str) -> bool:
@@ -849,6 +870,32 @@ def _bodies(value, path: str) -> tuple[BodySpec, ...]:
     return tuple(bodies)
 
 
+def overlap_problem(a: str, piece_a: np.ndarray, b: str, piece_b: np.ndarray,
+                    when: str = 'at the start') -> str | None:
+    """Why part ``a``'s convex piece cannot be placed where it overlaps body ``b``'s (world
+    frame, m), or None: more than MAX_START_OVERLAP of the thinner piece inside."""
+    depth = geometry.convex_penetration(piece_a, piece_b)
+    allowed = MAX_START_OVERLAP * min(geometry.min_width(piece_a), geometry.min_width(piece_b))
+    if depth <= allowed:
+        return None
+    return (f'{a!r} and {b!r} overlap by {depth:.3g} m {when} (more than {allowed:.3g} m, a '
+            'quarter of the thinner piece); move them apart: parts must start outside other '
+            'bodies')
+
+
+def check_placement(name: str, pose, velocity) -> tuple[str, np.ndarray, np.ndarray]:
+    """A part's ``name``, ``pose`` and ``velocity`` checked as a scene file's body fields are
+    (SceneError naming the field): a part placed in a running world."""
+    pose, velocity = (x.tolist() if isinstance(x, np.ndarray) else x for x in (pose, velocity))
+    try:
+        return (_body_name(name, 'name'),
+                _vec(pose, 'pose', 3, '[x, y, theta] (m, m, rad)', POSE_BOUNDS),
+                _vec(velocity, 'velocity', 3, '[vx, vy, omega] (m/s, m/s, rad/s)',
+                     VELOCITY_BOUNDS))
+    except _Invalid as err:
+        raise SceneError(err.message, err.path, source='') from None
+
+
 def _check_start_overlap(bodies: list[BodySpec], path: str) -> None:
     """Refuse a part that starts deep inside another body (MAX_START_OVERLAP of the thinner
     piece): contacts that deep are not found, so the part would pass through or keep
@@ -877,15 +924,11 @@ def _check_start_overlap(bodies: list[BodySpec], path: str) -> None:
         near = np.flatnonzero(np.all(lo <= hi[i], axis=1) & np.all(hi >= lo[i], axis=1)
                               & (owner != owner[i]) & (~dynamic | (np.arange(len(world)) > i)))
         for j in near:
-            depth = geometry.convex_penetration(world[i], world[j])
-            allowed = MAX_START_OVERLAP * min(geometry.min_width(world[i]),
-                                              geometry.min_width(world[j]))
-            if depth > allowed:
-                a, b = bodies[owner[i]].name, bodies[owner[j]].name
+            problem = overlap_problem(bodies[owner[i]].name, world[i], bodies[owner[j]].name,
+                                      world[j])
+            if problem:
                 raise _Invalid(f'{path}[{owner[j] if owner[j] > owner[i] else owner[i]}].pose',
-                               f'{a!r} and {b!r} overlap by {depth:.3g} m at the start (more '
-                               f'than {allowed:.3g} m, a quarter of the thinner piece); move '
-                               'them apart: parts must start outside other bodies')
+                               problem)
 
 
 def _track_name(value, path: str) -> str | None:

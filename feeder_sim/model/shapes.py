@@ -136,6 +136,34 @@ class ShapeSet:
             radius=_frozen(np.array(radius, dtype=float)),
         )
 
+    def with_body(self, body: int, pieces: Sequence[np.ndarray]) -> ShapeSet:
+        """This set and ``pieces`` (checked as :meth:`from_pieces`' are) owned by ``body``,
+        a body index above every one here: a part added to a running world, in time
+        proportional to the arrays, not to the bodies' checks."""
+        extra = ShapeSet.from_pieces([pieces])
+        return ShapeSet(
+            vertices=_frozen(np.concatenate((self.vertices, extra.vertices))),
+            piece_start=_frozen(np.concatenate(
+                (self.piece_start, extra.piece_start[1:] + len(self.vertices)))),
+            piece_body=_frozen(np.concatenate((self.piece_body, extra.piece_body + body))),
+            normals=_frozen(np.concatenate((self.normals, extra.normals))),
+            radius=_frozen(np.concatenate((self.radius, extra.radius))),
+        )
+
+    def without_body(self, body: int) -> ShapeSet:
+        """This set without the pieces of ``body``; the bodies above it move down by one."""
+        keep = self.piece_body != body
+        sizes = np.diff(self.piece_start)
+        vertex_kept = np.repeat(keep, sizes)
+        piece_body = self.piece_body[keep]
+        return ShapeSet(
+            vertices=_frozen(self.vertices[vertex_kept]),
+            piece_start=_frozen(np.concatenate(([0], np.cumsum(sizes[keep]))).astype(_INT)),
+            piece_body=_frozen(np.where(piece_body > body, piece_body - 1, piece_body)),
+            normals=_frozen(self.normals[vertex_kept]),
+            radius=_frozen(self.radius[keep]),
+        )
+
     @cached_property
     def derived(self) -> ShapeTopology:
         """Derived topology (next/prev vertex, active corners, internal edges, ...)."""

@@ -1,7 +1,9 @@
 """The simulated world: bodies as arrays (struct of arrays) and the state that evolves.
 
-A :class:`World` is built once from a :class:`~feeder_sim.model.scene.Scene` and does not change
-while the simulation runs (except the vibration drives, which take commands). A :class:`State`
+A :class:`World` is built from a :class:`~feeder_sim.model.scene.Scene` and does not change
+while the simulation runs (except the vibration drives, which take commands); a part added or
+taken away makes a new World from the old one (:meth:`World.with_part`,
+:meth:`World.without_body`). A :class:`State`
 holds what the stepping methods change: time, centre-of-mass positions, angles and velocities of
 every body. Static and kinematic bodies have rows in the state too; their rows are written from the
 prescribed motion, never integrated.
@@ -12,15 +14,16 @@ the body frame of the scene file, related by ``origin = com - R(angle) @ com_loc
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 import math
+from typing import NamedTuple
 
 import numpy as np
 
 from feeder_sim.model.geometry import mass_properties
 from feeder_sim.model.scene import BODY_TYPES as scene_body_types
-from feeder_sim.model.scene import Scene
+from feeder_sim.model.scene import BodySpec, Scene
 from feeder_sim.model.shapes import ShapeSet
 from feeder_sim.model.vibration import Drive, drive_table, DriveSegments
 
@@ -61,6 +64,29 @@ class State:
     def copy(self) -> State:
         return State(self.t, self.position.copy(), self.angle.copy(), self.velocity.copy(),
                      self.omega.copy())
+
+
+class _BodyModel(NamedTuple):
+    mass: float             # kg; inf for static and kinematic bodies
+    inertia: float          # kg m^2 about the centre of mass; inf likewise
+    com_local: np.ndarray   # (2,) centre of mass in the scene-file body frame
+    pieces: list            # convex pieces about the centre of mass
+    drive: Drive | None
+
+
+def _body_model(body: BodySpec) -> _BodyModel:
+    """What a world keeps of one body of a scene."""
+    dynamic = body.type == 'dynamic'
+    props = mass_properties(body.pieces, mass=body.mass, density=body.density) if dynamic \
+        else mass_properties(body.pieces, density=1.0)
+    drive = None
+    if body.vibration is not None:
+        theta = body.pose[2] + body.vibration.angle
+        drive = Drive(np.array([math.cos(theta), math.sin(theta)]), body.vibration.amplitude,
+                      body.vibration.frequency, body.vibration.phase)
+    return _BodyModel(props.mass if dynamic else math.inf,
+                      props.inertia if dynamic else math.inf, np.asarray(props.centroid, float),
+                      [np.asarray(p, float) - props.centroid for p in body.pieces], drive)
 
 
 def mix(a: np.ndarray, b: np.ndarray, rule: str) -> np.ndarray:
@@ -105,28 +131,12 @@ class World:
     @classmethod
     def from_scene(cls, scene: Scene) -> World:
         n = len(scene.bodies)
-        body_type = np.array([BODY_TYPES[b.type] for b in scene.bodies], dtype=np.int8)
-        mass = np.full(n, np.inf)
-        inertia = np.full(n, np.inf)
-        com_local = np.zeros((n, 2))
-        pieces_com = []
-        drives: list[Drive | None] = []
-        for i, body in enumerate(scene.bodies):
-            props = mass_properties(body.pieces, mass=body.mass, density=body.density) \
-                if body.type == 'dynamic' else mass_properties(body.pieces, density=1.0)
-            com_local[i] = props.centroid
-            if body.type == 'dynamic':
-                mass[i], inertia[i] = props.mass, props.inertia
-            pieces_com.append([np.asarray(p, float) - props.centroid for p in body.pieces])
-            vib = body.vibration
-            if vib is not None:
-                theta = body.pose[2] + vib.angle
-                drives.append(Drive(np.array([math.cos(theta), math.sin(theta)]),
-                                    vib.amplitude, vib.frequency, vib.phase))
-            else:
-                drives.append(None)
+        models = [_body_model(body) for body in scene.bodies]
         pose = np.array([b.pose for b in scene.bodies], dtype=float).reshape(n, 3)
-        base_position = pose[:, :2] + np.einsum('nij,nj->ni', rot(pose[:, 2]), com_local)
+        com_local = np.array([m.com_local for m in models], dtype=float).reshape(n, 2)
+        body_type = np.array([BODY_TYPES[b.type] for b in scene.bodies], dtype=np.int8)
+        mass = np.array([m.mass for m in models], dtype=float)
+        inertia = np.array([m.inertia for m in models], dtype=float)
         dynamic = body_type == DYNAMIC
         track_index = scene.bodies.index(
             next(b for b in scene.bodies if b.name == scene.track)) if scene.track else None
@@ -139,16 +149,72 @@ class World:
             inv_mass=np.where(dynamic, 1.0 / mass, 0.0),
             inv_inertia=np.where(dynamic, 1.0 / inertia, 0.0),
             com_local=com_local,
-            shapes=ShapeSet.from_pieces(pieces_com),
+            shapes=ShapeSet.from_pieces([m.pieces for m in models]),
             mu_static=np.array([b.mu_static for b in scene.bodies], float),
             mu_dynamic=np.array([b.mu_dynamic for b in scene.bodies], float),
             restitution=np.array([b.restitution for b in scene.bodies], float),
             gravity=np.asarray(scene.gravity, float),
-            base_position=base_position,
+            base_position=pose[:, :2] + np.einsum('nij,nj->ni', rot(pose[:, 2]), com_local),
             base_angle=pose[:, 2].copy(),
-            drives=tuple(drives),
+            drives=tuple(m.drive for m in models),
             track_index=track_index,
         )
+
+    def with_part(self, body: BodySpec) -> World:
+        """This world and the dynamic body ``body`` as its last one, at ``body.pose``.
+
+        A part added while the world runs: only ``body`` is looked at (its mass properties
+        and pieces), the other bodies' arrays are copied, and nothing accepted before is
+        checked again."""
+        m = _body_model(body)
+        pose = np.asarray(body.pose, float)
+        base = pose[:2] + rot(pose[2]) @ m.com_local
+        return replace(
+            self,
+            scene=replace(self.scene, bodies=(*self.scene.bodies, body)),
+            names=(*self.names, body.name),
+            body_type=np.append(self.body_type, np.int8(DYNAMIC)),
+            mass=np.append(self.mass, m.mass),
+            inertia=np.append(self.inertia, m.inertia),
+            inv_mass=np.append(self.inv_mass, 1.0 / m.mass),
+            inv_inertia=np.append(self.inv_inertia, 1.0 / m.inertia),
+            com_local=np.vstack((self.com_local, m.com_local)),
+            shapes=self.shapes.with_body(self.n, m.pieces),
+            mu_static=np.append(self.mu_static, body.mu_static),
+            mu_dynamic=np.append(self.mu_dynamic, body.mu_dynamic),
+            restitution=np.append(self.restitution, body.restitution),
+            base_position=np.vstack((self.base_position, base)),
+            base_angle=np.append(self.base_angle, pose[2]),
+            drives=(*self.drives, None),
+        )
+
+    def without_body(self, index: int) -> World:
+        """This world without body ``index`` (a part taken away); the bodies after it move
+        down by one index, drives and their commands go on."""
+        keep = np.arange(self.n) != index
+        track = self.track_index
+        return replace(
+            self,
+            scene=replace(self.scene, bodies=tuple(
+                b for k, b in enumerate(self.scene.bodies) if k != index)),
+            names=tuple(name for k, name in enumerate(self.names) if k != index),
+            body_type=self.body_type[keep], mass=self.mass[keep], inertia=self.inertia[keep],
+            inv_mass=self.inv_mass[keep], inv_inertia=self.inv_inertia[keep],
+            com_local=self.com_local[keep], shapes=self.shapes.without_body(index),
+            mu_static=self.mu_static[keep], mu_dynamic=self.mu_dynamic[keep],
+            restitution=self.restitution[keep], base_position=self.base_position[keep],
+            base_angle=self.base_angle[keep],
+            drives=tuple(d for k, d in enumerate(self.drives) if k != index),
+            track_index=track if track is None or track < index else
+            (None if track == index else track - 1),
+        )
+
+    def piece_outlines(self, state: State, body: int) -> list[np.ndarray]:
+        """The convex pieces of ``body`` in the world frame at ``state`` (m)."""
+        shapes = self.shapes
+        r = rot(state.angle[body])
+        return [shapes.vertices[shapes.piece_start[p]:shapes.piece_start[p + 1]] @ r.T
+                + state.position[body] for p in np.flatnonzero(shapes.piece_body == body)]
 
     @property
     def n(self) -> int:
