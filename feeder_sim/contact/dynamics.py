@@ -238,6 +238,7 @@ class SolverStats:
     slip_closures: int = 0     # slips left at a stop, ended by an impulse (event driven)
     frictionless_answers: int = 0  # LCPs whose fallback ladder ended without friction
     unresolved_force_lcps: int = 0  # force LCPs without an answer after the Painlevé impulse
+    overlaps_moved_out: int = 0  # parts placed inside a body, moved out (event driven)
     islands: int = 0           # islands with contacts, summed over steps (time stepping)
     pgs_solves: int = 0        # LCPs answered by the large-island projected Gauss-Seidel
     max_pgs_velocity_residual_mps: float = 0.0   # worst PGS answer, m/s (see _island_kernels)
