@@ -299,3 +299,71 @@ def _answer(graph, client, request):
     future = client.call_async(request)
     graph.spin_until(future.done, timeout_s=ANSWER_S)
     return future.result()
+
+
+def test_a_hundred_resets_at_once_are_all_answered(graph):
+    """Requests sent together are queued (KEEP_ALL), none is dropped; each is
+    answered in its turn between frames, the whole burst within a few seconds."""
+    node = graph.start(real_time_factor=1.0)
+    graph.spin_for(0.3)
+    client = graph.client(Trigger, '/feeder_sim/reset')
+    sent = time.monotonic()
+    futures = [client.call_async(Trigger.Request()) for _ in range(100)]
+    graph.spin_until(lambda: all(f.done() for f in futures), timeout_s=10.0)
+    took = time.monotonic() - sent
+    assert all(f.result().success for f in futures)
+    assert took < 5.0, took
+    assert not node.done and node.callback_exceptions == 0
+
+
+def test_pause_reset_and_parts_are_answered_during_a_long_step(graph, resting_scene):
+    """~/step of 2 000 frames runs in the frame timer a wall budget at a time: ~/get_entities
+    and ~/reset are answered within a second meanwhile, and ~/pause false answers the step
+    at once, saying it was resumed."""
+    node = graph.start(scene=str(resting_scene), real_time_factor=0.0, start_paused=True,
+                       steps_per_call=2000, publish_rate=1000.0)
+    step = graph.client(Trigger, '/feeder_sim/step')
+    entities = graph.client(srv.GetEntities, '/feeder_sim/get_entities')
+    reset = graph.client(Trigger, '/feeder_sim/reset')
+    pause = graph.client(SetBool, '/feeder_sim/pause')
+    stepping = step.call_async(Trigger.Request())
+    graph.spin_until(lambda: node.frames > 20)
+    for client, request in ((entities, srv.GetEntities.Request()),
+                            (reset, Trigger.Request())):
+        asked = time.monotonic()
+        reply = _answer(graph, client, request)
+        assert time.monotonic() - asked < 1.0
+        assert not stepping.done()
+    assert list(reply.message.split()[:1]) == ['scene'] and node.sim.t < 2.0
+    asked = time.monotonic()
+    assert _answer(graph, pause, SetBool.Request(data=False)).success
+    graph.spin_until(stepping.done, timeout_s=1.0)
+    assert time.monotonic() - asked < 1.0
+    assert stepping.result().success and 'resumed' in stepping.result().message
+    assert node.callback_exceptions == 0
+
+
+def test_two_thousand_spawns_sent_at_once_are_all_answered(graph, resting_scene):
+    """2 000 spawn requests sent without waiting (the node paused: only the services work)
+    are each answered, added or refused for the place being taken, and the parts added are
+    the ones the answers named."""
+    node = graph.start(scene=str(resting_scene), real_time_factor=0.0, start_paused=True)
+    client = graph.probe.create_client(srv.SpawnEntity, '/feeder_sim/spawn_entity',
+                                       qos_profile=sim_node._SERVICE_QOS)
+    assert client.wait_for_service(timeout_sec=10.0)
+    rng = random.Random(5)
+    futures = [client.call_async(srv.SpawnEntity.Request(
+        name='', uri='box', initial_pose=_pose_stamped(rng.uniform(-0.45, 0.45),
+                                                       rng.uniform(0.02, 1.0), 0.0)))
+        for _ in range(2000)]
+    answered = []
+    for f in futures:
+        f.add_done_callback(answered.append)
+    graph.spin_until(lambda: len(answered) == len(futures), timeout_s=90.0)
+    codes = [f.result().result.result for f in futures]
+    assert set(codes) <= {Result.RESULT_OK, Result.RESULT_OPERATION_FAILED}
+    added = {f.result().entity_name for f in futures
+             if f.result().result.result == Result.RESULT_OK}
+    assert len(added) > 500 and codes.count(Result.RESULT_OPERATION_FAILED) > 100
+    assert set(node.sim.part_poses()[0]) == added | {'box'}
+    assert node.callback_exceptions == 0

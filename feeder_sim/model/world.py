@@ -220,6 +220,11 @@ class World:
     def n(self) -> int:
         return len(self.names)
 
+    @cached_property
+    def name_index(self) -> dict[str, int]:
+        """Body name -> index."""
+        return {name: i for i, name in enumerate(self.names)}
+
     # Derived once: the stepping methods read these on every step.
     @cached_property
     def dynamic(self) -> np.ndarray:

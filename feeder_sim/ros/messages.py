@@ -132,27 +132,44 @@ def _colour(i: int) -> ColorRGBA:
 
 
 class Outlines:
-    """LINE_STRIP markers of body outlines, built once; each frame only moves their poses.
+    """LINE_STRIP markers of body outlines, built once per body; each frame only moves their
+    poses. Bodies come and go (:meth:`follow`): only a new body's markers are built, so a
+    part added to a world of hundreds costs its own markers, not everyone's."""
 
-    ``outlines[i]`` lists the closed polygons of body ``i`` in its scene-file body frame (m).
-    """
-
-    def __init__(self, outlines: Sequence[Sequence[np.ndarray]], names: Sequence[str],
-                 frame_id: str, line_width_m: float):
+    def __init__(self, frame_id: str, line_width_m: float):
         self.frame_id = frame_id
+        self.line_width_m = line_width_m
+        # name -> (its outlines as given, its markers); colours in order of first appearance
+        self._known: dict[str, tuple[object, list[Marker]]] = {}
+        self._seen = 0
         self._markers: list[list[Marker]] = []
-        for i, (polygons, name) in enumerate(zip(outlines, names)):
-            body = []
-            for j, polygon in enumerate(polygons):
-                m = Marker(ns=name, id=j, type=Marker.LINE_STRIP, action=Marker.ADD)
-                m.header.frame_id = frame_id
-                m.scale.x = line_width_m
-                m.color = _colour(i)
-                closed = np.vstack([polygon, polygon[:1]])
-                m.points = [Point(x=float(x), y=float(y), z=0.0) for x, y in closed.tolist()]
-                m.pose.orientation.w = 1.0
-                body.append(m)
-            self._markers.append(body)
+
+    def follow(self, outlines: Sequence[Sequence[np.ndarray]], names: Sequence[str]) -> None:
+        """The bodies now: ``outlines[i]`` lists the closed polygons of body ``i`` (named
+        ``names[i]``) in its scene-file body frame (m)."""
+        known = self._known
+        for polygons, name in zip(outlines, names, strict=True):
+            entry = known.get(name)
+            if entry is None or entry[0] is not polygons:
+                known[name] = (polygons, self._build(polygons, name, self._seen))
+                self._seen += 1
+        if len(known) > len(names):
+            for name in set(known) - set(names):
+                del known[name]
+        self._markers = [known[name][1] for name in names]
+
+    def _build(self, polygons: Sequence[np.ndarray], name: str, colour: int) -> list[Marker]:
+        body = []
+        for j, polygon in enumerate(polygons):
+            m = Marker(ns=name, id=j, type=Marker.LINE_STRIP, action=Marker.ADD)
+            m.header.frame_id = self.frame_id
+            m.scale.x = self.line_width_m
+            m.color = _colour(colour)
+            closed = np.vstack([polygon, polygon[:1]])
+            m.points = [Point(x=float(x), y=float(y), z=0.0) for x, y in closed.tolist()]
+            m.pose.orientation.w = 1.0
+            body.append(m)
+        return body
 
     def markers(self, t_ns: int, bodies: Sequence[int], origin: np.ndarray,
                 angle: np.ndarray, grey: bool = False) -> list[Marker]:

@@ -32,6 +32,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 import functools
+import inspect
 import math
 import os
 import signal
@@ -50,15 +51,17 @@ from rcl_interfaces.msg import (
     SetParametersResult,
 )
 import rclpy
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.publisher import Publisher
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.signals import SignalHandlerOptions
+from rclpy.task import Future
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState, PointCloud2
 from std_msgs.msg import Bool, Float64MultiArray, UInt32
@@ -86,6 +89,11 @@ _NS = 1_000_000_000
 # to the executor costs a wait-set rebuild (about a millisecond in rclpy), so a free-running
 # node takes longer turns than a paced one, which is idle most of the time anyway.
 _WALL_BUDGET_S = 0.01
+# Every request a service receives is kept until it is answered (rclpy's default keeps the
+# last 10: 90 of 100 resets sent at once were dropped unanswered); each is answered in its
+# turn, between frames. A reliable client is held back by the middleware's flow control
+# rather than losing requests.
+_SERVICE_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
 _WALL_BUDGET_FREE_S = 0.025
 _MAX_LAG_S = 0.25          # wall time behind schedule after which pacing forgets the debt
 _NAMESAKE_WINDOW_S = 10.0  # after start-up, the node looks this long for a namesake (DDS
@@ -248,6 +256,8 @@ class SimNode(Node):
             self.sim.check_duration(value['duration'], 'parameter duration')
         self.duration_ns = round(value['duration'] * _NS)
         self.paused: bool = value['start_paused']
+        # ~/step requests not answered yet: [frames left, future answered when they are done]
+        self._steps_asked: list[list] = []
         self.done = False
         # set by main() from SIGINT/SIGTERM: long physics is cut into slices that look at it
         self.stop = threading.Event()
@@ -271,6 +281,7 @@ class SimNode(Node):
         self._line_width, self._auto_impulse_scale = self._marker_sizes()
         self._last_markers = -np.inf
         self._world = None
+        self._outlines = msgs.Outlines(self.frame_id, self._line_width)
         self._s_start: dict[str, float] = {}   # where each part started along the track, m
         self._gone: list[str] = []          # parts taken away since the last markers
         self._follow_parts()
@@ -315,7 +326,10 @@ class SimNode(Node):
                                  qos_overriding_options=overridable)
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.create_service(SetBool, '~/pause', self._on_pause)
-        self.create_service(Trigger, '~/step', self._on_step)
+        # its own group: a step request waits for its frames without holding the default
+        # group, in which the frame timer runs them and the other services are answered
+        self.create_service(Trigger, '~/step', self._on_step,
+                            callback_group=MutuallyExclusiveCallbackGroup())
         self._create_part_services()
 
         # Pacing and diagnostics run on the steady clock: with use_sim_time set on this node
@@ -327,7 +341,11 @@ class SimNode(Node):
         self._rtf_achieved = 0.0
         self._slow_periods = 0
         self._rtf_told: float | None = None
-        self.create_timer(0.001, self._on_timer, clock=steady)
+        # off while paused with no step to take: an idle 1 ms tick would take turns with
+        # every request the services answer
+        self._frame_timer = self.create_timer(0.001, self._on_timer, clock=steady)
+        if self.paused:
+            self._frame_timer.cancel()
         self.create_timer(value['diagnostics_period'], self._publish_diagnostics, clock=steady)
         self._started_wall = time.perf_counter()
         self._clock_shared = False
@@ -349,6 +367,17 @@ class SimNode(Node):
         """``callback`` such that an exception it raises (a bug, a request no check foresaw)
         is logged once per type, counted in /diagnostics and answered by ``failed(*args,
         sentence)``; rclpy would let it out of ``spin_once`` and end the node."""
+        if inspect.iscoroutinefunction(callback):
+            @functools.wraps(callback)
+            async def guarded_async(*args):
+                try:
+                    return await callback(*args)
+                except ExternalShutdownException:
+                    raise
+                except Exception as err:   # noqa: BLE001 - any type: none may end the node
+                    return failed(*args, self._unexpected(where, err))
+            return guarded_async
+
         @functools.wraps(callback)
         def guarded(*args):
             try:
@@ -377,7 +406,8 @@ class SimNode(Node):
     def create_service(self, srv_type, srv_name: str, callback: Callable, **kwargs):
         """A service whose callback is guarded (:meth:`_guarded`): an unexpected exception is
         answered with the type's failure (a Result's RESULT_OPERATION_FAILED, success =
-        false) and the sentence."""
+        false) and the sentence; its queue keeps every request (KEEP_ALL)."""
+        kwargs.setdefault('qos_profile', _SERVICE_QOS)
         return super().create_service(
             srv_type, srv_name, self._guarded(
                 callback, f'service {self.resolve_service_name(srv_name)}', _failure),
@@ -416,6 +446,8 @@ class SimNode(Node):
         self._anchor_sim_ns = self.t_ns
 
     def _on_timer(self) -> None:
+        if self.paused and self._steps_asked:
+            self._step_while_paused()
         if self.paused or self.done:
             return
         start = time.perf_counter()
@@ -506,8 +538,7 @@ class SimNode(Node):
         self._world = world
         self._parts = self.sim.part_indices
         self._others = np.flatnonzero(world.body_type != DYNAMIC)
-        self._outlines = msgs.Outlines([b.outlines for b in world.scene.bodies], world.names,
-                                       self.frame_id, self._line_width)
+        self._outlines.follow([b.outlines for b in world.scene.bodies], world.names)
         for name, s0 in zip(self.sim.part_poses()[0], self.sim.track_coordinates()[0]):
             self._s_start.setdefault(name, s0)
 
@@ -765,6 +796,11 @@ class SimNode(Node):
 
     def _on_pause(self, request: SetBool.Request, response: SetBool.Response):
         self.paused = bool(request.data)
+        if not self.paused:
+            self._answer_steps(' (resumed before its frames were done)')
+            self._frame_timer.reset()
+        elif not self._steps_asked:
+            self._frame_timer.cancel()
         self._anchor()
         response.success = True
         response.message = f"{'paused' if self.paused else 'running'} at t = {self.sim.t:.6g} s"
@@ -858,18 +894,47 @@ class SimNode(Node):
         response.entities = list(self.sim.part_poses()[0])
         return self._result(response, 'RESULT_OK')
 
-    def _on_step(self, request: Trigger.Request, response: Trigger.Response):
+    async def _on_step(self, request: Trigger.Request, response: Trigger.Response):
+        """``steps_per_call`` frames while paused, answered when they are done. The frames run
+        in the frame timer, a wall budget at a time (:meth:`_step_while_paused`), so that
+        ~/pause, ~/reset and the part services are answered while a long step runs; resumed
+        (~/pause false) or stopped before its frames are done, a step is answered at once."""
         if not self.paused:
             response.success = False
             response.message = 'not paused: call ~/pause with data: true first'
             return response
-        for _ in range(self.get_parameter('steps_per_call').value):
-            if self.done or self.stop.is_set():
-                break
-            self.advance_frame()
+        done = Future()
+        self._steps_asked.append([self.get_parameter('steps_per_call').value, done])
+        self._frame_timer.reset()
+        await done
         response.success = True
-        response.message = f't = {self.sim.t:.6g} s'
+        response.message = f't = {self.sim.t:.6g} s' + done.result()
         return response
+
+    def _step_while_paused(self) -> None:
+        """Frames of the step requests, oldest first, for at most the frame timer's wall
+        budget (one frame at least); a request whose frames are done is answered."""
+        start = time.perf_counter()
+        while self._steps_asked:
+            asked = self._steps_asked[0]
+            if self.done or self.stop.is_set():
+                self._answer_steps(' (the node stopped)')
+                return
+            if asked[0] <= 0:
+                self._steps_asked.pop(0)[1].set_result('')
+                if not self._steps_asked:
+                    self._frame_timer.cancel()
+                continue
+            if time.perf_counter() - start > _WALL_BUDGET_S:
+                return
+            self.advance_frame()
+            asked[0] -= 1
+
+    def _answer_steps(self, why: str) -> None:
+        """Answer every pending step request now, saying ``why`` it ended early."""
+        asked, self._steps_asked = self._steps_asked, []
+        for _, done in asked:
+            done.set_result(why)
 
 
 def main(args: list[str] | None = None, stop: threading.Event | None = None,
