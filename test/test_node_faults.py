@@ -367,3 +367,17 @@ def test_two_thousand_spawns_sent_at_once_are_all_answered(graph, resting_scene)
     assert len(added) > 500 and codes.count(Result.RESULT_OPERATION_FAILED) > 100
     assert set(node.sim.part_poses()[0]) == added | {'box'}
     assert node.callback_exceptions == 0
+
+
+def test_pausing_from_python_stops_and_starts_the_frames(graph):
+    # the frame timer is off while paused: a script that sets `paused` itself must start it
+    node = graph.start(real_time_factor=0.0, start_paused=True)
+    graph.spin_for(0.2)
+    assert node.frames == 0
+    node.paused = False
+    graph.spin_until(lambda: node.frames > 5)
+    node.paused = True
+    graph.spin_for(0.05)
+    frames = node.frames
+    graph.spin_for(0.2)
+    assert node.frames == frames

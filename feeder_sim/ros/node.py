@@ -255,7 +255,8 @@ class SimNode(Node):
         if value['duration'] > 0:
             self.sim.check_duration(value['duration'], 'parameter duration')
         self.duration_ns = round(value['duration'] * _NS)
-        self.paused: bool = value['start_paused']
+        self._frame_timer = None
+        self.paused = value['start_paused']
         # ~/step requests not answered yet: [frames left, future answered when they are done]
         self._steps_asked: list[list] = []
         self.done = False
@@ -444,6 +445,20 @@ class SimNode(Node):
     def _anchor(self) -> None:
         self._anchor_wall = time.perf_counter()
         self._anchor_sim_ns = self.t_ns
+
+    @property
+    def paused(self) -> bool:
+        """Whether frames wait for ~/pause false or a ~/step (settable from Python too)."""
+        return self._paused
+
+    @paused.setter
+    def paused(self, value: bool) -> None:
+        self._paused = bool(value)
+        if self._frame_timer is not None:
+            if self._paused and not self._steps_asked:
+                self._frame_timer.cancel()
+            else:
+                self._frame_timer.reset()
 
     def _on_timer(self) -> None:
         if self.paused and self._steps_asked:
@@ -798,9 +813,6 @@ class SimNode(Node):
         self.paused = bool(request.data)
         if not self.paused:
             self._answer_steps(' (resumed before its frames were done)')
-            self._frame_timer.reset()
-        elif not self._steps_asked:
-            self._frame_timer.cancel()
         self._anchor()
         response.success = True
         response.message = f"{'paused' if self.paused else 'running'} at t = {self.sim.t:.6g} s"
