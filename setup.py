@@ -77,7 +77,6 @@ setup(
     maintainer_email='maintainers@feeder-sim.invalid',
     description='2D rigid-body simulation of vibratory parts feeders with frictional impulses',
     license='Apache-2.0',
-    tests_require=['pytest'],
     entry_points={
         'console_scripts': [
             'feeder-sim = feeder_sim.cli:main',

@@ -113,6 +113,9 @@ def _run_until_stopped(args: argparse.Namespace, stops: _StopSignals) -> int:
     if plot:
         plot_trajectory(result.trajectory, plot, f'{sim.scene.name} ({sim.method})')
     s = result.summary
+    if not (record or summary_path or plot):
+        print('nothing written (add --record OUT.mcap for a log to replay, --summary OUT.json '
+              'for these numbers)')
     print(f"{s['scene']}: {s['simulated_s']:.3f} s simulated in {s['wall_s']:.2f} s wall "
           f"({s['method']}, step {s['time_step_s']:g} s, {s['solver']['lcp_solves']} LCP solves, "
           f"{s['solver']['fallbacks']} fallbacks)")
@@ -278,8 +281,9 @@ def _stability(args: argparse.Namespace) -> int:
     kw = {'methods': _split(args.methods)} if args.methods else {}
     result = run_stability(args.out, cases=_split(args.cases),
                            progress=None if args.quiet else print, **kw)
-    print(f'stability: {"PASSED" if result["passed"] else "FAILED"} '
-          f'({Path(args.out) / "stability.json"})')
+    if args.quiet:      # otherwise the report's own last line said it
+        print(f'stability: {"PASSED" if result["passed"] else "FAILED"} '
+              f'({Path(args.out) / "stability.json"})')
     return 0 if result['passed'] else 1
 
 

@@ -294,3 +294,12 @@ def test_a_stop_signal_while_compiling_ends_the_run_at_once(tmp_path):
     assert lines[-1] == 'feeder-sim: stopped by SIGTERM before the first frame; nothing written'
     assert took < 10.0, took
     assert not (tmp_path / 'run.mcap').exists()
+
+
+def test_a_run_that_writes_nothing_says_so(tmp_path):
+    proc = subprocess.run([sys.executable, '-m', 'feeder_sim.cli', 'run', 'track_one_box',
+                           '--duration', '0.02'], capture_output=True, text=True, cwd=tmp_path,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith('nothing written (add --record OUT.mcap')
+    assert list(tmp_path.iterdir()) == []
