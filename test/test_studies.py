@@ -276,24 +276,33 @@ def test_a_scheduler_that_does_not_answer_is_one_line(tmp_path):
                                'scheduler answered (Connection refused)')
 
 
+def start_dask_processes(folder: Path, procs: list[subprocess.Popen]) -> str:
+    """A Dask scheduler and one single-threaded worker as processes of their own sessions
+    (appended to ``procs``, for the caller to end); the scheduler's address."""
+    scheduler_file = folder / 'scheduler.json'
+
+    def start(args: list[str]) -> subprocess.Popen:
+        procs.append(subprocess.Popen([sys.executable, '-m', *args],
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                      start_new_session=True))
+        return procs[-1]
+
+    start(['distributed.cli.dask_scheduler', '--host', '127.0.0.1', '--port', '0',
+           '--dashboard-address', ':0', '--scheduler-file', str(scheduler_file)])
+    end = time.monotonic() + 60
+    while not scheduler_file.exists():
+        assert time.monotonic() < end
+        time.sleep(0.05)
+    address = json.loads(scheduler_file.read_text())['address']
+    start(['distributed.cli.dask_worker', address, '--nworkers', '1', '--nthreads', '1',
+           '--no-dashboard'])
+    return address
+
+
 def test_a_scheduler_and_a_worker_started_as_processes(tmp_path):
-    scheduler_file = tmp_path / 'scheduler.json'
-    dask = [sys.executable, '-m', 'distributed.cli']
-    procs = [subprocess.Popen([*dask[:2], 'distributed.cli.dask_scheduler', '--host',
-                               '127.0.0.1', '--port', '0', '--dashboard-address', ':0',
-                               '--scheduler-file', str(scheduler_file)],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                              start_new_session=True)]
+    procs: list[subprocess.Popen] = []
     try:
-        end = time.monotonic() + 60
-        while not scheduler_file.exists():
-            assert time.monotonic() < end
-            time.sleep(0.1)
-        address = json.loads(scheduler_file.read_text())['address']
-        procs.append(subprocess.Popen(
-            [*dask[:2], 'distributed.cli.dask_worker', address, '--nworkers', '1',
-             '--nthreads', '1', '--no-dashboard'],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True))
+        address = start_dask_processes(tmp_path, procs)
         study = study_file(tmp_path, {**SMALL, 'repeats': 1})
         proc = subprocess.run([sys.executable, '-m', 'feeder_sim.cli', 'study', str(study),
                                '--out', str(tmp_path / 'remote'), '--scheduler', address],

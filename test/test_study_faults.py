@@ -21,6 +21,7 @@ import threading
 import time
 
 import pytest
+from test_studies import start_dask_processes
 import yaml
 
 from feeder_sim import cli
@@ -123,23 +124,10 @@ def test_rows_of_a_lost_trial_are_not_results(tmp_path, cluster):
 
 # --- a scheduler that dies mid-study -------------------------------------------------------
 
-def _start(args: list[str]) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, '-m', *args], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, start_new_session=True)
-
-
 def test_a_lost_scheduler_ends_the_study_and_a_rerun_completes_it(tmp_path, cluster):
-    scheduler_file = tmp_path / 'scheduler.json'
-    procs = [_start(['distributed.cli.dask_scheduler', '--host', '127.0.0.1', '--port', '0',
-                     '--dashboard-address', ':0', '--scheduler-file', str(scheduler_file)])]
+    procs: list[subprocess.Popen] = []
     try:
-        end = time.monotonic() + 60
-        while not scheduler_file.exists():
-            assert time.monotonic() < end
-            time.sleep(0.05)
-        address = json.loads(scheduler_file.read_text())['address']
-        procs.append(_start(['distributed.cli.dask_worker', address, '--nworkers', '1',
-                             '--nthreads', '1', '--no-dashboard']))
+        address = start_dask_processes(tmp_path, procs)
         data = {**TINY, 'duration': 0.5, 'repeats': 6,
                 'parameters': {'bodies[track].vibration.amplitude': [2.0e-4]}}
         study = tmp_path / 'study.yaml'
