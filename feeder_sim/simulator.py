@@ -722,8 +722,8 @@ class Simulator:
         world = self.world.with_part(body)
         index = world.n - 1
         s = self.state
-        cos, sin = math.cos(pose[2]), math.sin(pose[2])
-        com = pose[:2] + np.array([[cos, -sin], [sin, cos]]) @ world.com_local[index]
+        # its centre of mass at ``pose``: where with_part put it at rest
+        com = world.base_position[index]
         state = State(s.t, np.vstack((s.position, com)), np.append(s.angle, pose[2]),
                       np.vstack((s.velocity, velocity[:2])), np.append(s.omega, velocity[2]))
         self._check_clear(world, state, index, name)
@@ -766,9 +766,7 @@ class Simulator:
         _, pose, velocity = check_placement(name, _triple(pose, 'pose'),
                                             _triple(velocity, 'velocity'))
         s = self.state.copy()
-        cos, sin = math.cos(pose[2]), math.sin(pose[2])
-        s.position[index] = pose[:2] + np.array([[cos, -sin], [sin, cos]]) @ \
-            self.world.com_local[index]
+        s.position[index] = self.world.centre_of_mass(index, pose)
         s.angle[index] = pose[2]
         s.velocity[index] = velocity[:2]
         s.omega[index] = velocity[2]

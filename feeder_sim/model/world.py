@@ -89,6 +89,10 @@ def _body_model(body: BodySpec) -> _BodyModel:
                       [np.asarray(p, float) - props.centroid for p in body.pieces], drive)
 
 
+def _centre_of_mass(pose: np.ndarray, com_local: np.ndarray) -> np.ndarray:
+    return pose[:2] + rot(pose[2]) @ com_local
+
+
 def mix(a: np.ndarray, b: np.ndarray, rule: str) -> np.ndarray:
     """Material value of a contact from the values of its two bodies.
 
@@ -168,7 +172,7 @@ class World:
         checked again."""
         m = _body_model(body)
         pose = np.asarray(body.pose, float)
-        base = pose[:2] + rot(pose[2]) @ m.com_local
+        base = _centre_of_mass(pose, m.com_local)
         return replace(
             self,
             scene=replace(self.scene, bodies=(*self.scene.bodies, body)),
@@ -208,6 +212,11 @@ class World:
             track_index=track if track is None or track < index else
             (None if track == index else track - 1),
         )
+
+    def centre_of_mass(self, body: int, pose: np.ndarray) -> np.ndarray:
+        """(2,) centre of mass (m, world frame) of ``body`` with its scene-file frame at
+        ``pose`` [x, y, angle]."""
+        return _centre_of_mass(np.asarray(pose, float), self.com_local[body])
 
     def piece_outlines(self, state: State, body: int) -> list[np.ndarray]:
         """The convex pieces of ``body`` in the world frame at ``state`` (m)."""
