@@ -135,8 +135,11 @@ def test_any_sequence_of_changes_at_any_phase(ops):
     assert all(np.all(np.isfinite(a)) for a in (s.position, s.velocity, s.angle, s.omega))
 
 
+@pytest.mark.parametrize('time_step', [1e-3, 1e-2], ids=['default', 'coarse'])
+@pytest.mark.parametrize('depth', [1e-5, 5e-4, 2e-3])       # 2 mm: near the 2.5 mm allowed
 @pytest.mark.parametrize('start', ['scene', 'added'])
-def test_a_part_placed_partly_inside_the_track_is_moved_out_on_event_driven(start):
+def test_a_part_placed_partly_inside_the_track_is_moved_out_on_event_driven(start, depth,
+                                                                             time_step):
     # A box standing on its short side, tilted 0.06 rad, one corner 0.5 mm inside the track
     # (a scene or a spawn may place it up to 2.5 mm deep). Held there, the corner stayed
     # deep, and as the box turned its other corner reached the face: a collision event the
@@ -146,13 +149,15 @@ def test_a_part_placed_partly_inside_the_track_is_moved_out_on_event_driven(star
     sim = vertical_track('event_driven')
     tilt = -math.pi / 2 - 0.06
     c, s = math.cos(tilt), math.sin(tilt)
-    # the lower corner of the short side at x = +0.01 m in the body frame, 0.5 mm deep
+    # the lower corner of the short side at x = +0.01 m in the body frame, `depth` deep
     low_y = min(0.01 * s + y * c for y in (-0.005, 0.005))
-    pose = [0.0, -low_y - 5e-4, tilt]
+    pose = [0.0, -low_y - depth, tilt]
     if start == 'scene':
         box = replace(sim.scene.bodies[1], name='standing', pose=np.array(pose))
-        sim = Simulator(replace(sim.scene, bodies=(*sim.scene.bodies, box)), method='event_driven')
+        sim = Simulator(replace(sim.scene, bodies=(*sim.scene.bodies, box)),
+                        method='event_driven', time_step=time_step)
     else:
+        sim = Simulator(sim.scene, method='event_driven', time_step=time_step)
         sim.add_part('box', 'standing', pose)
     sim.command_vibration(0.0, FREQUENCY_HZ)          # a still track: the box settles
     sim.advance_by(1.0)
