@@ -4,14 +4,14 @@ Issue target: 1 000 ``add_part``/``remove_part`` calls on a 200-part scene in at
 cost of a call not growing with the phase of the drive or with what was accepted before.
 
 The 200-part pile of ``benchmarks/pile.py``, landed (0.3 s simulated), then ``--calls`` calls
-in pairs: a part added above the pile and taken away again. Three ways, each ``--repeats``
+in pairs: a part added above the pile and taken away again, each way ``--repeats``
 times, interleaved:
 
 - ``calls``: the calls back to back (what a script or a burst of service requests does);
-- ``calls+frames``: a 10 ms frame simulated between pairs, the frame's own time subtracted
-  (measured in the same loop without the calls): what a change costs the next frame (the
-  stepper is made anew once per change);
-- ``moves``: ``set_part_pose`` of a part of the pile to where it is, back to back.
+- ``moves``: ``set_part_pose`` of a part of the pile to where it is, back to back;
+- ``pymunk calls`` (when pymunk is installed, the benchmark extra): the peer's
+  ``space.add`` / ``space.remove`` of a box body and shape in a space of the same 200 boxes,
+  landed the same 0.3 s, in the same run; the ratio is feeder_sim's calls over pymunk's.
 
 Prints a table and writes ``out/bench/world_changes.json`` (``--out`` elsewhere)::
 
@@ -27,6 +27,8 @@ import statistics
 import sys
 import time
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / 'benchmarks'))
@@ -36,8 +38,6 @@ from pile import pile_scene  # noqa: E402
 from feeder_sim.model.builders import build  # noqa: E402
 from feeder_sim.simulator import Simulator  # noqa: E402
 
-FRAME_S = 0.01
-
 
 def landed_pile(n_parts: int) -> Simulator:
     sim = Simulator(build(pile_scene(n_parts)))
@@ -45,9 +45,8 @@ def landed_pile(n_parts: int) -> Simulator:
     return sim
 
 
-def calls(sim: Simulator, n_calls: int, frames: bool) -> float:
-    """Seconds per call of n_calls add/remove calls (a frame between pairs if ``frames``,
-    its time not counted)."""
+def calls(sim: Simulator, n_calls: int) -> float:
+    """Seconds per call of n_calls add/remove calls, back to back."""
     template = sim.world.names[sim.part_indices[0]]
     spent = 0.0
     for _ in range(n_calls // 2):
@@ -55,25 +54,7 @@ def calls(sim: Simulator, n_calls: int, frames: bool) -> float:
         sim.add_part(template, 'visitor', [0.0, 0.4, 0.0])
         sim.remove_part('visitor')
         spent += time.perf_counter() - t0
-        if frames:
-            sim.advance_by(FRAME_S)
     return spent / (2 * (n_calls // 2))
-
-
-def frame_cost(sim: Simulator, n_frames: int) -> float:
-    t0 = time.perf_counter()
-    for _ in range(n_frames):
-        sim.advance_by(FRAME_S)
-    return (time.perf_counter() - t0) / n_frames
-
-
-def with_frames(sim: Simulator, n_calls: int) -> float:
-    """Seconds a pair of calls adds to the frame after it, per call."""
-    pairs = n_calls // 2
-    t0 = time.perf_counter()
-    calls(sim, n_calls, frames=True)
-    total = time.perf_counter() - t0
-    return (total - pairs * frame_cost(sim, pairs)) / (2 * pairs)
 
 
 def moves(sim: Simulator, n_calls: int) -> float:
@@ -86,6 +67,50 @@ def moves(sim: Simulator, n_calls: int) -> float:
     return (time.perf_counter() - t0) / n_calls
 
 
+def pymunk_space(sim: Simulator):
+    """The pile as a pymunk space (boxes of the same size and mass where the parts are now,
+    the track and walls as static boxes), landed 0.3 s at the same step; None without
+    pymunk."""
+    try:
+        import pymunk
+    except ImportError:
+        return None
+    space = pymunk.Space()
+    space.gravity = tuple(sim.world.gravity)
+    names, origin, angle = sim.part_poses()
+    for i in range(sim.world.n):
+        pieces = sim.scene.bodies[i].pieces
+        if sim.world.dynamic[i]:
+            body = pymunk.Body(float(sim.world.mass[i]), float(sim.world.inertia[i]))
+            body.position = tuple(sim.state.position[i])
+            body.angle = float(sim.state.angle[i])
+            shapes = [pymunk.Poly(body, [tuple(v - sim.world.com_local[i]) for v in p])
+                      for p in pieces]
+        else:
+            body = space.static_body
+            c, s_ = np.cos(sim.state.angle[i]), np.sin(sim.state.angle[i])
+            rot = np.array([[c, -s_], [s_, c]])
+            shapes = [pymunk.Poly(body, [tuple(rot @ (v - sim.world.com_local[i])
+                                               + sim.state.position[i]) for v in p])
+                      for p in pieces]
+        space.add(*([body] if sim.world.dynamic[i] else []), *shapes)
+    for _ in range(300):
+        space.step(1e-3)
+    return space
+
+
+def pymunk_calls(space, template: np.ndarray, n_calls: int) -> float:
+    import pymunk
+    t0 = time.perf_counter()
+    for _ in range(n_calls // 2):
+        body = pymunk.Body(0.01, 1e-6)
+        body.position = (0.0, 0.4)
+        shape = pymunk.Poly(body, [tuple(v) for v in template])
+        space.add(body, shape)
+        space.remove(body, shape)
+    return (time.perf_counter() - t0) / (2 * (n_calls // 2))
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--parts', type=int, default=200)
@@ -95,11 +120,17 @@ def main() -> int:
     args = parser.parse_args()
     print(f'landing a {args.parts}-part pile (0.3 s simulated) ...', flush=True)
     sim = landed_pile(args.parts)
-    runs: dict[str, list[float]] = {'calls': [], 'calls+frames': [], 'moves': []}
+    space = pymunk_space(sim)
+    part = sim.part_indices[0]
+    template = sim.scene.bodies[part].pieces[0] - sim.world.com_local[part]
+    runs: dict[str, list[float]] = {'calls': [], 'moves': []}
+    if space is not None:
+        runs['pymunk calls'] = []
     for r in range(args.repeats):
-        runs['calls'].append(calls(sim, args.calls, frames=False))
-        runs['calls+frames'].append(with_frames(sim, min(args.calls, 200)))
+        runs['calls'].append(calls(sim, args.calls))
         runs['moves'].append(moves(sim, args.calls))
+        if space is not None:
+            runs['pymunk calls'].append(pymunk_calls(space, template, args.calls))
         print(f'  repeat {r + 1}/{args.repeats}: ' + ', '.join(
             f'{k} {v[-1] * 1e3:.2f} ms' for k, v in runs.items()), flush=True)
     rows = {k: {'ms_per_call': statistics.median(v) * 1e3, 'repeats_ms': [x * 1e3 for x in v]}
@@ -111,10 +142,17 @@ def main() -> int:
               + ' '.join(f'{x:.3f}' for x in row['repeats_ms']))
     print(f'\n{args.calls} add/remove calls on {args.parts} parts: {total:.2f} s '
           f'(target <= 2 s: {"met" if total <= 2.0 else "not met"})')
+    ratio = None
+    if space is not None:
+        ratios = [a / b for a, b in zip(runs['calls'], runs['pymunk calls'], strict=True)]
+        ratio = statistics.median(ratios)
+        print(f'feeder_sim / pymunk per add/remove call: {ratio:.1f} (repeats '
+              f'{min(ratios):.1f}-{max(ratios):.1f})')
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({'parts': args.parts, 'calls': args.calls, 'rows': rows,
-                               'seconds_for_calls': total, 'target_s': 2.0}, indent=2))
+                               'seconds_for_calls': total, 'target_s': 2.0,
+                               'ratio_to_pymunk': ratio}, indent=2))
     print(f'wrote {out}')
     return 0
 
