@@ -244,6 +244,7 @@ class SolverStats:
     max_pgs_velocity_residual_mps: float = 0.0   # worst PGS answer, m/s (see _island_kernels)
     lcp_rows: int = 0          # rows of the non-trivial LCPs, summed
     max_lcp_rows: int = 0      # rows of the largest non-trivial LCP
+    substeps: int = 0          # steps shortened for a pair closing fast (time stepping)
     messages: list = field(default_factory=list)
 
     def record(self, result) -> None:

@@ -57,6 +57,7 @@ from feeder_sim._arena import (
 )
 from feeder_sim._jit import inner, jit
 from feeder_sim.contact._collision_kernels import (
+    _argsort,
     _argsort_int,
     _where,
     clean_contacts_inline,
@@ -85,9 +86,9 @@ DONE, REFERENCE, GROW = 0, 1, 2
 
 # integer counters (``ints``), in SolverStats' names
 (I_STEPS, I_LCP_SOLVES, I_TRIVIAL, I_PIVOTS, I_UNCONVERGED, I_IMPACTS, I_ISLANDS, I_PGS,
- I_LCP_ROWS, I_MAX_LCP_ROWS) = range(10)
+ I_LCP_ROWS, I_MAX_LCP_ROWS, I_SUBSTEPS) = range(11)
 INT_COUNTERS = ('steps', 'lcp_solves', 'trivial_solves', 'pivots', 'unconverged', 'impacts',
-                'islands', 'pgs_solves', 'lcp_rows', 'max_lcp_rows')
+                'islands', 'pgs_solves', 'lcp_rows', 'max_lcp_rows', 'substeps')
 # float maxima (``floats``)
 F_MAX_RESIDUAL, F_MAX_PENETRATION, F_MAX_PGS_VRES = range(3)
 FLOAT_MAXIMA = ('max_residual', 'max_penetration_m', 'max_pgs_velocity_residual_mps')
@@ -143,6 +144,7 @@ class StepSettings(NamedTuple):
     push_out: float
     push_max_mps: float
     spec_depth: float          # speculative_depth x collision.DEPTH_FRACTION
+    substep_share: float       # substep_depth x collision.DEPTH_FRACTION
     slip_tol_mps: float
     lcp_tol: float
     reuse_row_states: bool
@@ -279,9 +281,9 @@ def _prescribed(t, drives, driven_idx, position, velocity):
 
 
 @inner(machine_inline=True)
-def _find_contacts(ar, shapes, position, angle, dynamic, margin, narrow):
-    """``collision.find_contacts(shapes, position, angle, dynamic, margin=margin)``: the
-    kept contacts' (vertex, edge, gap, edge_param, world vertices, world normals)."""
+def _world_shapes(ar, shapes, position, angle):
+    """World vertices and edge normals ((nv, 2) each) and the pieces' bounding boxes
+    (lo, hi: (n_pieces, 2)) at these poses."""
     nv = shapes.vertices.shape[0]
     n = position.shape[0]
     cos = empty_f(ar, n)
@@ -312,6 +314,115 @@ def _find_contacts(ar, shapes, position, angle, dynamic, margin, narrow):
                 b = max(b, w[k, j])
             lo[p, j] = a
             hi[p, j] = b
+    return w, nw, lo, hi
+
+
+@inner
+def _separation(w, nw, a0, a1, b0, b1):
+    """The largest separation of two convex pieces (vertex ranges ``a0:a1``, ``b0:b1``) along
+    an edge normal of either (m; negative: overlapping at least that deep along every one),
+    the unit axis, and True when it is an edge normal of the first piece (pointing from it
+    to the second). It never exceeds their distance."""
+    best, nx, ny, own = -np.inf, 0.0, 1.0, True
+    for first in (True, False):
+        e0, e1, v0, v1 = (a0, a1, b0, b1) if first else (b0, b1, a0, a1)
+        for k in range(e0, e1):
+            low = np.inf
+            for j in range(v0, v1):
+                low = min(low, nw[k, 0] * (w[j, 0] - w[k, 0]) + nw[k, 1] * (w[j, 1] - w[k, 1]))
+            if low > best:
+                best, nx, ny, own = low, nw[k, 0], nw[k, 1], first
+    return best, nx, ny, own
+
+
+@inner(machine_inline=True)
+def safe_step_inline(ar, h, pos, ang, vel, om, bodies, shapes, drives, st):
+    """The longest step up to ``h`` (s) in which no vertex can move more than the allowance
+    ``st.substep_share`` x the thinner piece's width (half the narrow phase's depth window at
+    the default) relative to a piece it is about to meet, in half a step: deeper, the
+    midpoint's contact search can match it to the far face of a thin body, or miss it, and a
+    contact that closes within a step acts from up to half a step's approach away.
+
+    Conservative advancement over piece pairs: each pair's points close at most at ``c``, the
+    pair's relative speed bound (``|v_a - v_b| + |omega_a| r_a + |omega_b| r_b`` plus what
+    gravity and the drives add within the step), or, for pieces already touching, only its
+    component along their separating axis. A pair apart by ``d`` may take ``d / (1.5 c)``
+    (it cannot close, or reach the next midpoint's search, within the step); a touching or
+    nearly touching one ``2 allowance / c``. Slow scenes never get past the first test, so
+    their steps are the scheme's own."""
+    dynamic = bodies.dynamic
+    v_dyn, v_other, _, closing = speed_bounds_inline(vel, om, bodies.radius_m, dynamic)
+    a_kin = 0.0
+    for row in range(drives.omega_rad_s.shape[0]):
+        w_d, amplitude = drives.omega_rad_s[row], drives.amplitude_m[row]
+        v_other = _larger(v_other, 2.0 * w_d * amplitude)
+        a_kin = _larger(a_kin, 2.0 * w_d * w_d * amplitude)
+    accel = (bodies.g + a_kin) * h
+    c_all = _larger(v_dyn + v_other, closing) + accel
+    n_p = shapes.piece_body.shape[0]
+    thinnest = np.inf
+    for p in range(n_p):
+        thinnest = min(thinnest, shapes.piece_width[p])
+    # NaN speeds pass here: the step refuses them itself
+    if not 0.5 * h * c_all > st.substep_share * thinnest:
+        return h
+    w, nw, lo, hi = _world_shapes(ar, shapes, pos, ang)
+    slack = 10.0 * st.touch_m
+    reach = 1.5 * h * c_all + slack
+    key = empty_f(ar, n_p)
+    for p in range(n_p):
+        key[p] = lo[p, 0]
+    order = _argsort(ar, key)
+    safe = h
+    for ii in range(n_p):
+        p = order[ii]
+        for jj in range(ii + 1, n_p):
+            q = order[jj]
+            if lo[q, 0] > hi[p, 0] + reach:
+                break
+            a, b = shapes.piece_body[p], shapes.piece_body[q]
+            if a == b or not (dynamic[a] or dynamic[b]):
+                continue
+            if lo[p, 1] > hi[q, 1] + reach or lo[q, 1] > hi[p, 1] + reach:
+                continue
+            allow = st.substep_share * min(shapes.piece_width[p], shapes.piece_width[q])
+            spin = abs(om[a]) * bodies.radius_m[a] + abs(om[b]) * bodies.radius_m[b]
+            dvx, dvy = vel[b, 0] - vel[a, 0], vel[b, 1] - vel[a, 1]
+            c = math.hypot(dvx, dvy) + spin + accel
+            if not 0.5 * h * c > allow:
+                continue
+            sep, nx, ny, own = _separation(w, nw, shapes.piece_start[p],
+                                           shapes.piece_start[p + 1], shapes.piece_start[q],
+                                           shapes.piece_start[q + 1])
+            if sep > slack:
+                if sep >= 1.5 * h * c:
+                    continue
+                cut = max(sep / (1.5 * c), 2.0 * allow / c)
+            else:
+                # touching: they go deeper only along the axis they are separated on
+                approach = -(nx * dvx + ny * dvy) if own else nx * dvx + ny * dvy
+                c = max(approach, 0.0) + spin + accel
+                if not 0.5 * h * c > allow:
+                    continue
+                cut = 2.0 * allow / c
+            safe = min(safe, cut)
+    return safe
+
+
+@jit
+def safe_step(ar, h, pos, ang, vel, om, bodies, shapes, drives, st):
+    """:func:`safe_step_inline` for Python callers (the reference step)."""
+    return safe_step_inline(ar, h, pos, ang, vel, om, bodies, shapes, drives, st)
+
+
+@inner(machine_inline=True)
+def _find_contacts(ar, shapes, position, angle, dynamic, margin, narrow):
+    """``collision.find_contacts(shapes, position, angle, dynamic, margin=margin)``: the
+    kept contacts' (vertex, edge, gap, edge_param, world vertices, world normals)."""
+    n = position.shape[0]
+    nv = shapes.vertices.shape[0]
+    n_p = shapes.piece_body.shape[0]
+    w, nw, lo, hi = _world_shapes(ar, shapes, position, angle)
     take = full_b(ar, n_p, True)
     dyn = empty_b(ar, n_p)
     any_dyn = False
@@ -1051,7 +1162,9 @@ def advance(t, t_end, pos, ang, vel, om, bodies, shapes, drives, st, warm, appro
             floats, rep, msgs, n_msgs, arenas):
     """``TimeStepper.advance`` from ``t`` to ``t_end`` (s) by ``st.time_step_s``, the last
     step shortened to land on ``t_end``: ``(code, t, warm, approach)``, where ``code`` is
-    ``DONE`` or why the step at ``t`` is left to the caller (``REFERENCE``, ``GROW``).
+    ``DONE`` or why the step at ``t`` is left to the caller (``REFERENCE``, ``GROW``). A
+    step in which a pair could close too fast for the scheme is shortened
+    (:func:`safe_step_inline`); the next one starts where it ended.
 
     A step's scratch comes from one of the two ``arenas`` (:mod:`feeder_sim._arena`), reset
     when the step starts; steps alternate between them because the impulses (and held-back
@@ -1092,13 +1205,16 @@ def advance(t, t_end, pos, ang, vel, om, bodies, shapes, drives, st, warm, appro
         borrow(rep.normal_impulse), borrow(rep.tangent_impulse), borrow(rep.step_end),
         borrow(rep.counts))
     while t_end - t > 1e-9 * h:
-        step = min(h, t_end - t)
+        full = min(h, t_end - t)
         ar = scratch[n & 1]
         release(ar, 0)
+        step = safe_step_inline(ar, full, pos, ang, vel, om, bodies, shapes, drives, st)
         code, warm, approach = _step(ar, step, t, pos, ang, vel, om, bodies, shapes, drives,
                                      st, warm, approach, ints, floats, rep, msgs, n_msgs)
         if code != DONE:
             break
+        if step < full:
+            ints[I_SUBSTEPS] += 1
         t = t + step
         n += 1
     out_warm = Warm(warm.keys.copy(), warm.p_n.copy(), warm.p_t.copy(), warm.state.copy(),
