@@ -39,7 +39,7 @@ interfaces = ['catkin_pkg', 'ros-jazzy-ament-package', 'ros-jazzy-ament-cmake',
               'ros-jazzy-rosidl-typesupport-introspection-c',
               'ros-jazzy-rosidl-typesupport-introspection-cpp']
 # design studies: trials on Dask, a progress bar, the Parquet table
-study = ['dask[distributed]>=2024.6', 'tqdm>=4.66', 'pyarrow>=15']
+study = ['dask[distributed]>=2024.6', 'pyarrow>=15']
 # colcon from PyPI: the packaging test builds this package in a workspace as ROS users do.
 colcon = ['colcon-core', 'colcon-ros', 'colcon-python-setup-py', 'colcon-library-path',
           'colcon-bash', 'ros-jazzy-ament-package']
@@ -60,7 +60,7 @@ setup(
     python_requires='>=3.11',
     install_requires=['setuptools', 'numpy>=1.26', 'scipy>=1.11', 'numba>=0.60', 'pyyaml>=6',
                       'matplotlib>=3.8', 'mcap>=1.2', 'mcap-ros2-support>=0.5',
-                      'simpleeval>=1.0'],
+                      'simpleeval>=1.0', 'tqdm>=4.66'],
     extras_require={
         'ros': ros,
         'replay': replay,

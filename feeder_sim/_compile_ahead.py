@@ -54,6 +54,7 @@ HELPER_START_S = 2.5
 _held: dict[str, int] = {}               # kernel -> lock file descriptor, this process
 _lock_guard = threading.Lock()
 _recording: list | None = None            # see record()
+ready_hook = None       # called as each package kernel becomes ready (see _compile_progress)
 _helper: dict = {'process': None}
 _waited = {'s': 0.0, 'now': 0}            # see lock_wait_seconds(), waiting()
 
@@ -178,8 +179,12 @@ def install_locks() -> None:
             return compile_(self, sig)
         with kernel_lock(name):
             if _recording is None:
-                return compile_(self, sig)
-            return _recorded_compile(compile_, self, name, tuple(args))
+                out = compile_(self, sig)
+            else:
+                out = _recorded_compile(compile_, self, name, tuple(args))
+        if ready_hook is not None:
+            ready_hook(name)   # compiled here, or loaded from what the helper compiled
+        return out
 
     locked_compile._feeder_sim = True
     Dispatcher.compile = locked_compile

@@ -40,7 +40,7 @@ import sys
 import numba
 import numpy as np
 
-from feeder_sim import _compile_ahead
+from feeder_sim import _compile_ahead, _compile_progress
 
 JIT_OPTIONS = {'cache': True, 'nogil': True, 'error_model': 'numpy'}
 
@@ -90,7 +90,7 @@ _LAST_USED = '.last_used'
 _COLD_COMPILE = '10-100 s'
 
 _state = {'notice_dir': None, 'noticed': False, 'warned': False, 'deferred_codegen': False,
-          'inline_refcounts': False, 'expected': None}
+          'inline_refcounts': False, 'expected': None, 'progress': None}
 
 
 def expect(method: str) -> None:
@@ -357,20 +357,32 @@ def _listen_for_compiles() -> None:
 
     event.register('numba:compiler_lock', Holding())
 
+    def ours(ev) -> bool:
+        py_func = getattr((ev.data or {}).get('dispatcher'), 'py_func', None)
+        filename = getattr(getattr(py_func, '__code__', None), 'co_filename', '')
+        return os.path.abspath(filename).startswith(PACKAGE_ROOT + os.sep)
+
     class Notice(event.Listener):
         def on_start(self, ev) -> None:
-            if _state['noticed']:
+            progress = _state['progress']
+            if progress is not None and progress.running() or not ours(ev):
                 return
-            py_func = getattr((ev.data or {}).get('dispatcher'), 'py_func', None)
-            filename = getattr(getattr(py_func, '__code__', None), 'co_filename', '')
-            if not os.path.abspath(filename).startswith(PACKAGE_ROOT + os.sep):
-                return
-            _state['noticed'] = True
-            where = _state['notice_dir'] or '__pycache__ beside the modules'
-            helped = bool(_state['expected']) and _compile_ahead.start_helper(_state['expected'])
-            print(f'{PACKAGE}: compiling numba kernels for first use (about {_COLD_COMPILE}'
-                  f'{", in two processes" if helped else ""}, cached in {where})',
-                  file=sys.stderr, flush=True)
+            if not _state['noticed']:
+                _state['noticed'] = True
+                where = _state['notice_dir'] or '__pycache__ beside the modules'
+                helped = bool(_state['expected']) and _compile_ahead.start_helper(
+                    _state['expected'])
+                print(f'{PACKAGE}: compiling numba kernels for first use (about '
+                      f'{_COLD_COMPILE}{", in two processes" if helped else ""}, cached in '
+                      f'{where})', file=sys.stderr, flush=True)
+            if _compile_progress.wanted():
+                plan = _compile_ahead.load_plan(_state['expected']) if _state['expected'] \
+                    else None
+                progress = _compile_progress.CompileProgress(
+                    _compile_progress.plan_costs(plan), lambda: _holding['depth'] > 0)
+                _state['progress'] = progress
+                _compile_ahead.ready_hook = progress.compiled
+                progress.start()
 
         def on_end(self, ev) -> None:
             pass
