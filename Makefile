@@ -11,7 +11,7 @@ PIP := $(PY) -m pip --disable-pip-version-check -q
 RUN_STAMP := $(VENV)/.installed-run
 TEST_STAMP := $(VENV)/.installed-test
 
-.PHONY: setup run test bench clean
+.PHONY: setup run test bench figures clean
 
 $(PY):
 	python3 -m venv $(VENV)
@@ -38,6 +38,8 @@ RTF ?= 1.0
 
 run: $(RUN_STAMP)
 	mkdir -p out
+	@# the first compile, with its progress, before the node starts (seconds when cached)
+	$(VENV)/bin/feeder-sim compile track_one_box --method event_driven
 	ROS_AUTOMATIC_DISCOVERY_RANGE=$${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST} \
 	$(VENV)/bin/sim_node --ros-args --params-file config/sim_node.params.yaml \
 	    -p record_path:=out/track_one_box.mcap -p duration:=$(DURATION) \
@@ -54,6 +56,19 @@ bench: $(TEST_STAMP)
 	$(PY) benchmarks/throughput.py
 	$(PY) benchmarks/node.py
 	$(PY) benchmarks/methods.py
+
+# Maintainers only: regenerate the figures and reports the README publishes (the tracked files
+# under docs/; about 40 min on a 2-core machine). Every other documented command writes under out/.
+STUDY_FIGURES = track_speed_map:conveying_speed_mps hook_orienter:fraction_open_end_up \
+    hook_orienter_fed:fraction_open_end_up cup_drop:outcomes
+figures: $(TEST_STAMP)
+	$(VENV)/bin/feeder-sim paper --out out/paper
+	cp out/paper/*.png docs/figures/
+	$(VENV)/bin/feeder-sim accuracy --out docs/accuracy
+	$(VENV)/bin/feeder-sim stability --out docs/stability
+	for pair in $(STUDY_FIGURES); do study=$${pair%%:*}; plot=$${pair##*:}; \
+	    $(VENV)/bin/feeder-sim study config/studies/$$study.yaml --out out/studies/$$study \
+	        && cp out/studies/$$study/$$plot.png docs/studies/$$study.png || exit 1; done
 
 clean:
 	rm -rf $(VENV) out build install log *.egg-info
