@@ -38,6 +38,12 @@ TINY = {
 }
 
 
+def error_lines(stderr: str) -> list[str]:
+    """What a study printed on stderr besides its progress (its bar, its 'study:' lines)."""
+    return [line for line in stderr.replace('\r', '\n').splitlines()
+            if line.strip() and not line.startswith(('study:', '[feeder_sim] study:'))]
+
+
 @pytest.fixture(scope='module')
 def cluster():
     """A LocalCluster of one worker process; studies reach it by its address."""
@@ -69,7 +75,7 @@ def test_a_changed_spec_is_named_and_refused_or_recomputed(tmp_path, cluster, mo
     study.write_text(yaml.safe_dump({**TINY, 'duration': 0.3}))
     capsys.readouterr()                            # the first run's progress bar
     assert cli.main(['study', str(study), '--out', str(out), '--scheduler', cluster]) == 2
-    lines = capsys.readouterr().err.strip().splitlines()
+    lines = error_lines(capsys.readouterr().err)
     assert len(lines) == 1 and 'duration 0.1 -> 0.3 s' in lines[0], lines
     assert {r['key']: r['conveying_speed_mps'] for r in rows_of(out)} == speeds
 
@@ -149,8 +155,7 @@ def test_a_lost_scheduler_ends_the_study_and_a_rerun_completes_it(tmp_path, clus
         _, err = proc.communicate(timeout=30)
         took = time.monotonic() - killed
         assert proc.returncode != 0 and took < 15, (proc.returncode, took, err)
-        lines = [line for line in err.replace('\r', '\n').splitlines()
-                 if line.strip() and not line.startswith('study:')]
+        lines = error_lines(err)
         assert len(lines) == 1 and 'stopped answering' in lines[0], err
         done = rows_of(out)
         assert 1 <= len(done) < 6 and all(r['status'] == 'ok' for r in done)
@@ -246,7 +251,7 @@ def test_what_is_not_a_dask_scheduler_is_one_line_within_15_s(tmp_path, capsys):
         # and on the command line: one line, exit 2
         assert cli.main(['study', 'config/studies/track_speed_map.yaml', '--out', str(tmp_path),
                          '--scheduler', addresses['huge frame']]) == 2
-        err = capsys.readouterr().err.strip().splitlines()
+        err = error_lines(capsys.readouterr().err)
         assert len(err) == 1 and 'not a Dask scheduler' in err[0], err
     finally:
         httpd.shutdown()
@@ -314,8 +319,7 @@ def test_a_study_with_failed_trials_exits_non_zero_with_the_first_reason(
     code = cli.main(['-q', 'study', 'study.yaml', '--out', str(tmp_path / 'out'),
                      '--scheduler', cluster])
     assert code == 1
-    err = [line for line in capsys.readouterr().err.replace('\r', '\n').splitlines()
-           if line.strip() and not line.startswith('study:')]     # the progress bar aside
+    err = error_lines(capsys.readouterr().err)
     assert len(err) == 1 and err[0].startswith('feeder-sim: error: 2 of 2 trials failed; the '
                                                'first: design 0 repeat 0: ValueError: metric '
                                                'fraction:open_end_up'), err

@@ -29,6 +29,8 @@ def run_study(study: str | os.PathLike | StudySpec, out: str | os.PathLike, *,
     """Run (or complete) a study into ``out``; returns what ``study.json`` holds.
     ``recompute``: ``out`` holding trials of another spec has them computed again (else
     SpecChanged names what changed)."""
+    if not isinstance(study, StudySpec):
+        log.info('study: reading %s and checking its scene at each parameter\'s values', study)
     spec = study if isinstance(study, StudySpec) else load_study(study)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

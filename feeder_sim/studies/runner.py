@@ -348,6 +348,23 @@ def _close(client, cluster, lost: bool) -> None:
     closer.join(3)
 
 
+def _while_saying(work: Callable[[], Any], line: Callable[[float], str],
+                  every_s: float = 5.0) -> Any:
+    """``work()``, with ``line(seconds so far)`` logged every ``every_s`` while it runs."""
+    done = threading.Event()
+    start = time.perf_counter()
+
+    def say() -> None:
+        while not done.wait(every_s):
+            log.info(line(time.perf_counter() - start))
+
+    threading.Thread(target=say, daemon=True).start()
+    try:
+        return work()
+    finally:
+        done.set()
+
+
 def run_trials(spec: StudySpec, out: Path, *, scheduler: str | None = None,
                workers: int | None = None,
                on_row: Callable[[dict], None] | None = None,
@@ -394,15 +411,21 @@ def run_trials(spec: StudySpec, out: Path, *, scheduler: str | None = None,
         record_dir = str((out / 'logs').resolve())
         os.makedirs(record_dir, exist_ok=True)
     start = time.perf_counter()
+    log.info('study: %d runs to do (%d stored); %s', len(todo), total - len(todo),
+             f'connecting to {scheduler}' if scheduler else 'starting a local Dask cluster')
     client, cluster = make_client(scheduler, workers)
     lost = False
     try:
-        client.run(_warm_worker, spec)
+        log.info('study: %d Dask workers up after %.1f s; loading the kernels on them (a cold '
+                 'cache compiles them: a minute or more)',
+                 len(client.scheduler_info()['workers']), time.perf_counter() - start)
+        _while_saying(lambda: client.run(_warm_worker, spec),
+                      lambda s: f'study: still loading the kernels on the workers, {s:.0f} s')
         if timing is not None:
             timing['ready_s'] = time.perf_counter() - start
-        log.info('study: %d runs to do (%d stored) on %d Dask workers (%s)', len(todo),
-                 total - len(todo), len(client.scheduler_info()['workers']),
-                 client.scheduler.address)
+        log.info('study: running on %d Dask workers (%s), ready after %.1f s',
+                 len(client.scheduler_info()['workers']), client.scheduler.address,
+                 time.perf_counter() - start)
         # A few trials in flight beyond one per worker, one handed out when one comes back.
         # Submitted all at once, they were split evenly up front and a worker whose trials
         # ran short sat idle at the end (2.5 s of 7 on 16 one-second trials). Exactly one

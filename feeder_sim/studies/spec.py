@@ -97,6 +97,8 @@ class Parameter:
     high: float = 0.0
     count: int = 0
     is_range: bool = False                   # values from {range: ..., count: n}
+    label: str | None = None                 # the plots' axis label (default: from the name)
+    unit: str | None = None                  # the plots' unit (default: a known key path's)
 
     def checked_values(self) -> tuple[float, ...]:
         """The values a scene is checked at before the first trial: each listed one (up to
@@ -184,37 +186,54 @@ def _number(value: Any, path: str, source: str, *, positive: bool = False) -> fl
     return float(value)
 
 
+_LABELS = ('label', 'unit')
+
+
 def _parameter(name: str, value: Any, path: str, source: str) -> Parameter:
     if isinstance(value, list):
-        if not value:
+        value = {'values': value}
+    if not isinstance(value, Mapping):
+        raise StudyError('expected a list of values, {values: [...]}, {range: [lo, hi], count: '
+                         'n} or {sample: random|lhs, low: lo, high: hi, count: n}', path,
+                         source)
+    names = {}
+    for key in _LABELS:
+        if key in value:
+            if not isinstance(value[key], str) or not value[key].strip():
+                raise StudyError(f'expected a text for the plots, got {value[key]!r}',
+                                 f'{path}.{key}', source)
+            names[key] = value[key].strip()
+    if 'values' in value:
+        values = value['values']
+        if set(value) - {'values', *_LABELS} or not isinstance(values, list) or not values:
             raise StudyError('expected a non-empty list of values', path, source)
         return Parameter(name, tuple(_number(v, f'{path}[{k}]', source)
-                                     for k, v in enumerate(value)))
-    if not isinstance(value, Mapping):
-        raise StudyError('expected a list of values, {range: [lo, hi], count: n} or '
-                         '{sample: random|lhs, low: lo, high: hi, count: n}', path, source)
+                                     for k, v in enumerate(values)), **names)
     count = value.get('count')
     if not isinstance(count, int) or isinstance(count, bool) or not 1 <= count <= MAX_TRIALS:
         raise StudyError(f'count must be a whole number from 1 to {MAX_TRIALS}, got {count!r}',
                          f'{path}.count', source)
     if 'range' in value:
-        extra = set(value) - {'range', 'count'}
+        extra = set(value) - {'range', 'count', *_LABELS}
         bounds = value['range']
         if extra or not (isinstance(bounds, list) and len(bounds) == 2):
             raise StudyError('a range is {range: [lo, hi], count: n}', path, source)
         lo, hi = (_number(b, f'{path}.range[{k}]', source) for k, b in enumerate(bounds))
-        return Parameter(name, tuple(np.linspace(lo, hi, count).tolist()), is_range=True)
+        return Parameter(name, tuple(np.linspace(lo, hi, count).tolist()), is_range=True,
+                         **names)
     if 'sample' in value:
         if value['sample'] not in ('random', 'lhs') or set(value) - {'sample', 'low', 'high',
-                                                                   'count'}:
+                                                                   'count', *_LABELS}:
             raise StudyError('a sample is {sample: random|lhs, low: lo, high: hi, count: n}',
                              path, source)
         low = _number(value.get('low'), f'{path}.low', source)
         high = _number(value.get('high'), f'{path}.high', source)
         if not low < high:
             raise StudyError(f'low ({low:g}) must be below high ({high:g})', path, source)
-        return Parameter(name, sample=value['sample'], count=count, low=low, high=high)
-    raise StudyError('expected a list of values, {range: ...} or {sample: ...}', path, source)
+        return Parameter(name, sample=value['sample'], count=count, low=low, high=high,
+                         **names)
+    raise StudyError('expected a list of values, {values: ...}, {range: ...} or {sample: ...}',
+                     path, source)
 
 
 _SEGMENT = re.compile(r'([A-Za-z_]\w*)((?:\[[^\]]+\])*)')

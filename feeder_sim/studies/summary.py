@@ -21,6 +21,7 @@ import json
 import logging
 import math
 from pathlib import Path
+import re
 from typing import Any
 
 import numpy as np
@@ -242,6 +243,63 @@ def write_summary(spec: StudySpec, rows: list[dict], out: Path, wall_s: float,
     return summary
 
 
+# the last key of a scene key path -> (what it is, unit)
+_KEY_LABELS = {
+    'amplitude': ('drive amplitude', 'm'), 'frequency': ('drive frequency', 'Hz'),
+    'angle': ('drive angle', 'rad'), 'phase': ('drive phase', 'rad'),
+    'offset': ('drive offset', 'm'), 'mu_static': ('static friction coefficient', ''),
+    'mu_dynamic': ('dynamic friction coefficient', ''), 'restitution': ('restitution', ''),
+    'mass': ('mass', 'kg'), 'density': ('density', 'kg/m²'), 'time_step': ('time step', 's'),
+    'tolerance': ('tolerance', ''), 'gravity': ('gravity', 'm/s²'), 'pose': ('pose', 'm'),
+    'velocity': ('velocity', 'm/s'), 'interval': ('interval', 's'),
+}
+# metric name endings -> unit
+_METRIC_UNITS = (('_mps', 'm/s'), ('_per_min', '1/min'), ('_m', 'm'), ('_s', 's'))
+
+
+def parameter_label(spec: StudySpec, parameter) -> str:
+    """An axis label for a study parameter: the study's own ``label`` / ``unit`` if it gives
+    them, else what a known key path or the scene's declared parameter says, with its unit."""
+    name, unit = parameter.name, parameter.unit
+    label = parameter.label
+    declared = ((spec.scene_data or {}).get('parameters') or {}).get(name) \
+        if isinstance(spec.scene_data, dict) else None
+    if isinstance(declared, dict) and unit is None:
+        unit = declared.get('unit')
+    if label is None:
+        keys = re.findall(r'[A-Za-z_]\w*', name)
+        body = re.search(r'bodies\[([^\]]+)\]', name)
+        known = _KEY_LABELS.get(keys[-1]) if '.' in name or '[' in name else None
+        if known is not None:
+            label = f'{body.group(1)} {known[0]}' if body else known[0]
+            unit = known[1] if unit is None else unit
+        else:
+            label = name.replace('_', ' ')
+    return f'{label} ({unit})' if unit else label
+
+
+def metric_label(metric: str) -> str:
+    """An axis label for a metric: its words and the unit its name ends with."""
+    kind, _, name = metric.rpartition(':')
+    kind = f'{kind}: ' if kind else ''
+    for ending, unit in _METRIC_UNITS:
+        if name.endswith(ending):
+            return f'{kind}{name[:-len(ending)].replace("_", " ")} ({unit})'
+    return kind + name.replace('_', ' ')
+
+
+def _legend_outside(fig) -> None:
+    """One legend for the figure's axes, below them, where it covers no data (constrained
+    layout keeps room for it)."""
+    handles: dict[str, Any] = {}
+    for ax in fig.axes:
+        for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):
+            handles.setdefault(label, handle)
+    if handles:
+        fig.legend(list(handles.values()), list(handles), loc='outside lower center', ncol=3,
+                   fontsize=8, frameon=False)
+
+
 def plot(spec: StudySpec, summary: dict, rows: list[dict], out: Path) -> list[Path]:
     """A PNG per metric: against the parameter with the interval band (one parameter), or a
     map over two (a grid as cells, a sample as dots); the best design marked. With
@@ -252,6 +310,7 @@ def plot(spec: StudySpec, summary: dict, rows: list[dict], out: Path) -> list[Pa
     import matplotlib.pyplot as plt
 
     names = [p.name for p in spec.parameters]
+    labels = [parameter_label(spec, p) for p in spec.parameters]
     designs = summary['designs']
     best = summary['best_design']
     written = []
@@ -266,13 +325,13 @@ def plot(spec: StudySpec, summary: dict, rows: list[dict], out: Path) -> list[Pa
                                   for d in designs])
         if numerical is not None and len(names) > 1:
             fig, (ax, low) = plt.subplots(2, 1, figsize=(7, 7.5), dpi=120,
-                                          height_ratios=(3, 2))
+                                          height_ratios=(3, 2), layout='constrained')
             _error_bars(low, np.arange(len(designs)), mean, lo, hi, numerical)
             low.set_xlabel('design')
-            low.set_ylabel(metric)
+            low.set_ylabel(metric_label(metric))
             low.grid(True, alpha=0.3)
         else:
-            fig, ax = plt.subplots(figsize=(7, 4.5), dpi=120)
+            fig, ax = plt.subplots(figsize=(7, 4.5), dpi=120, layout='constrained')
         if len(names) == 1:
             x = np.array([d['parameters'][names[0]] for d in designs])
             o = np.argsort(x)
@@ -290,9 +349,8 @@ def plot(spec: StudySpec, summary: dict, rows: list[dict], out: Path) -> list[Pa
                 ax.plot(x[o], theory[o], 'k--', lw=1, label='point-mass theory')
             if numerical is not None:
                 _error_bars(ax, x, mean, None, None, numerical)
-            ax.set_xlabel(names[0])
-            ax.set_ylabel(metric)
-            ax.legend(fontsize=8)
+            ax.set_xlabel(labels[0])
+            ax.set_ylabel(metric_label(metric))
         else:
             x = np.array([d['parameters'][names[0]] for d in designs])
             y = np.array([d['parameters'][names[1]] for d in designs])
@@ -311,17 +369,16 @@ def plot(spec: StudySpec, summary: dict, rows: list[dict], out: Path) -> list[Pa
                     ax.plot([], [], color='white', lw=0.8, label='point-mass theory')
             else:
                 mesh = ax.scatter(x, y, c=mean, cmap='viridis', s=60)
-            fig.colorbar(mesh, ax=ax, label=f'{metric} (mean)')
+            fig.colorbar(mesh, ax=ax, label=f'{metric_label(metric)}, mean')
             if best is not None:
                 d = designs[[e['design'] for e in designs].index(best)]
                 ax.plot(d['parameters'][names[0]], d['parameters'][names[1]], '*', ms=18,
                         color='tab:red', label=f'best {spec.objective}')
-                ax.legend(fontsize=8)
-            ax.set_xlabel(names[0])
-            ax.set_ylabel(names[1])
+            ax.set_xlabel(labels[0])
+            ax.set_ylabel(labels[1])
         ax.set_title(f'{Path(spec.source).stem}: {metric}, {spec.repeats} trial(s) per design')
         ax.grid(True, alpha=0.3)
-        fig.tight_layout()
+        _legend_outside(fig)
         path = out / f'{metric.replace(":", "_")}.png'
         fig.savefig(path)
         plt.close(fig)
@@ -343,7 +400,6 @@ def _error_bars(ax, x: np.ndarray, mean: np.ndarray, lo: np.ndarray | None,
     ok = np.isfinite(numerical) & np.isfinite(mean)
     ax.errorbar(x[ok], mean[ok], yerr=numerical[ok], fmt='none', ecolor='tab:orange', lw=4,
                 alpha=0.7, label='± numerical error (step)')
-    ax.legend(fontsize=8)
 
 
 def _reference(designs: list[dict], metric: str) -> np.ndarray | None:
