@@ -287,6 +287,12 @@ def _stability(args: argparse.Namespace) -> int:
     return 0 if result['passed'] else 1
 
 
+def _node(args: argparse.Namespace) -> int:
+    from feeder_sim.ros.client import run
+
+    return run(args)
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse with its errors on one line (it prints the whole usage before them)."""
 
@@ -401,6 +407,42 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser('scenes', help='list the shipped scenes')
     p.set_defaults(func=_scenes)
+
+    p = sub.add_parser('node', help='talk to a running feeder_sim node (no ros2 CLI needed)')
+    common = argparse.ArgumentParser(add_help=False)
+    # before or after the subcommand; a subcommand's default would override the one before it
+    for q, default in ((p, None), (common, argparse.SUPPRESS)):
+        q.add_argument('--node', default=default or '/feeder_sim', metavar='/NAMESPACE/NAME',
+                       help='the node (default /feeder_sim)')
+        q.add_argument('--timeout', type=float, default=default or 5.0, metavar='S',
+                       help='wall s to wait for the node, for each answer and each message '
+                            '(default 5); exit 2 after')
+    cmd = p.add_subparsers(dest='command', required=True, metavar='SUBCOMMAND')
+    c = cmd.add_parser('vibration', parents=[common], help='command the drive (vibration_cmd)')
+    c.add_argument('amplitude', type=float, metavar='AMPLITUDE_M')
+    c.add_argument('frequency', type=float, metavar='FREQUENCY_HZ')
+    c.add_argument('--topic', help="the node's command topic (default: found in the graph)")
+    for verb, text in (('pause', 'pause the simulation'), ('resume', 'resume it'),
+                       ('step', 'advance a paused node steps_per_call frames'),
+                       ('reset', "back to the scene's start, t = 0"),
+                       ('list', 'the parts now, one per line')):
+        cmd.add_parser(verb, parents=[common], help=text)
+    c = cmd.add_parser('spawn', parents=[common], help='add a part; prints the name it got')
+    c.add_argument('template', help="the scene's dynamic body to copy, e.g. box")
+    c.add_argument('--name', help='its name (default: the node picks a free one)')
+    c.add_argument('--pose', nargs=3, type=float, metavar=('X', 'Y', 'YAW'),
+                   help='body frame pose in the world frame: m, m, rad')
+    c.add_argument('--allow-renaming', action='store_true', help='a taken --name gets a suffix')
+    cmd.add_parser('delete', parents=[common], help='remove a part').add_argument('name')
+    c = cmd.add_parser('param', parents=[common], help="set a parameter (as its current type)")
+    c.add_argument('name')
+    c.add_argument('value')
+    c = cmd.add_parser('echo', parents=[common], help='print part poses (name x y yaw) or a '
+                                                      "sensor's messages")
+    c.add_argument('what', choices=('poses', 'sensor'))
+    c.add_argument('name', nargs='?', help='the sensor (echo sensor NAME)')
+    c.add_argument('--count', type=int, default=1, metavar='K', help='messages (default 1)')
+    p.set_defaults(func=_node)
     return parser
 
 
