@@ -181,10 +181,17 @@ def _compile(args: argparse.Namespace) -> int:
 
 
 def _scenes(_: argparse.Namespace) -> int:
-    from feeder_sim.model.scene import scene_dirs, shipped_scenes
+    from feeder_sim.model.scene import load_scene, scene_dirs, SceneError, shipped_scenes
 
-    for name in shipped_scenes():
-        print(name)
+    names = shipped_scenes()
+    width = max((len(n) for n in names), default=0)
+    for name in names:
+        try:
+            scene = load_scene(name)
+            about = f'{scene.solver.method:<14} {scene.description or "(no description)"}'
+        except SceneError as err:        # a scene file edited into an error: say so, go on
+            about = f'{"-":<14} invalid: {err}'
+        print(f'{name:<{width}}  {about}')
     print('(from ' + ', '.join(str(d) for d in scene_dirs()) + ')', file=sys.stderr)
     return 0
 

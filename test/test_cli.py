@@ -303,3 +303,26 @@ def test_a_run_that_writes_nothing_says_so(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.startswith('nothing written (add --record OUT.mcap')
     assert list(tmp_path.iterdir()) == []
+
+
+def test_scenes_lists_each_shipped_scene_with_its_method_and_a_line_about_it():
+    from feeder_sim.model.scene import load_scene, shipped_scenes
+
+    proc = subprocess.run([sys.executable, '-m', 'feeder_sim.cli', 'scenes'],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0
+    lines = proc.stdout.splitlines()
+    assert [line.split()[0] for line in lines] == shipped_scenes()
+    for line in lines:
+        name, method, about = line.split(maxsplit=2)
+        scene = load_scene(name)
+        assert method == scene.solver.method and about == scene.description != ''
+
+
+def test_a_description_must_be_text():
+    from feeder_sim.model.scene import parse_scene, SceneError
+
+    data = {'bodies': [{'name': 'floor', 'type': 'static',
+                        'polygon': [[0, 0], [1, 0], [1, 1], [0, 1]]}], 'description': 5}
+    with pytest.raises(SceneError, match='description'):
+        parse_scene(data)

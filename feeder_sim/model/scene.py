@@ -299,6 +299,7 @@ class Scene(_ArrayFieldsEq):
     bodies: tuple[BodySpec, ...]
     track: str | None = None
     source: str = '<dict>'
+    description: str = ''             # one line: what the scene is (feeder-sim scenes)
     outcomes: OutcomeSpec = OutcomeSpec()
     # the values of the scene's named parameters this scene was built with
     parameters: Mapping[str, float] = field(default_factory=dict)
@@ -1098,6 +1099,7 @@ def _sinks(value, path: str) -> tuple[SinkSpec, ...]:
 
 _TOP = {
     'name': _Field(_string, 'a text', _AUTO),
+    'description': _Field(_string, 'a line of text saying what the scene is', ''),
     # read first, by parse_scene (the numbers of the rest may be expressions of them)
     'parameters': _Field(lambda v, p: v, 'a mapping of named parameters', None, nullable=True),
     'gravity': _Field(lambda v, p: _vec(v, p, 2, '[gx, gy] (m/s^2)', (MAX_GRAVITY_MPS2,) * 2),
@@ -1276,7 +1278,7 @@ def parse_scene(data: Mapping, source: str = '<dict>',
                                f'{_suggest(src.template, sorted(templates))}; expected one of: '
                                f'{", ".join(sorted(templates)) or "none"}')
         return Scene(name=name, gravity=f['gravity'], solver=f['solver'], bodies=bodies,
-                     track=track, source=source,
+                     track=track, source=source, description=f['description'],
                      outcomes=f['outcomes'] if f['outcomes'] is not None else OutcomeSpec(),
                      parameters=values, sources=f['sources'] or (), sinks=f['sinks'] or (),
                      sensors=f['sensors'] or ())
