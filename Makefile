@@ -15,9 +15,12 @@ TEST_STAMP := $(VENV)/.installed-test
 
 $(PY):
 	python3 -m venv $(VENV)
+	@# no colcon package inside (the ROS wheels' share/ folders hold package.xml files)
+	touch $(VENV)/COLCON_IGNORE
 	$(PIP) install --upgrade pip setuptools wheel
 
-IFC := $(wildcard interfaces/build.py interfaces/feeder_sim_interfaces/*.* interfaces/feeder_sim_interfaces/*/*)
+IFC := $(wildcard interfaces/build.py interfaces/requirements.txt interfaces/feeder_sim_interfaces/*.* \
+    interfaces/feeder_sim_interfaces/*/*)
 
 $(RUN_STAMP): setup.py package.xml $(IFC) | $(PY)
 	@echo "installing feeder_sim with the ROS 2 wheels and rerun into $(VENV), then building its part services (a minute or two)"

