@@ -5,7 +5,8 @@
 #   make test   set up .venv with the test tools, lint, run the test suite
 VENV ?= .venv
 PY := $(VENV)/bin/python
-PIP := $(PY) -m pip --disable-pip-version-check -q
+# not -q: a line per package collected and installed, a fresh install's progress
+PIP := $(PY) -m pip --disable-pip-version-check --progress-bar off
 # `make run` installs what running needs (the ROS 2 wheels, rerun for the replay); `make test`
 # adds the study tools (Dask) and the test tools (colcon, pytest, hypothesis, ruff, pymunk)
 RUN_STAMP := $(VENV)/.installed-run
@@ -51,7 +52,8 @@ run: $(RUN_STAMP)
 
 test: $(TEST_STAMP)
 	$(VENV)/bin/ruff check feeder_sim test benchmarks interfaces
-	$(PY) -m pytest -q test
+	@# not -q: each module's name starts its line of dots, so a long one shows which it is
+	$(PY) -m pytest test
 
 bench: $(TEST_STAMP)
 	$(PY) benchmarks/conveying.py
