@@ -6,7 +6,7 @@
 VENV ?= .venv
 PY := $(VENV)/bin/python
 # not -q: a line per package collected and installed, a fresh install's progress
-PIP := $(PY) -m pip --disable-pip-version-check --progress-bar off
+PIP_INSTALL := $(PY) -m pip --disable-pip-version-check install --progress-bar off
 # `make run` installs what running needs (the ROS 2 wheels, rerun for the replay); `make test`
 # adds the study tools (Dask) and the test tools (colcon, pytest, hypothesis, ruff, pymunk)
 RUN_STAMP := $(VENV)/.installed-run
@@ -18,20 +18,20 @@ $(PY):
 	python3 -m venv $(VENV)
 	@# no colcon package inside (the ROS wheels' share/ folders hold package.xml files)
 	touch $(VENV)/COLCON_IGNORE
-	$(PIP) install --upgrade pip setuptools wheel
+	$(PIP_INSTALL) --upgrade pip setuptools wheel
 
 IFC := $(wildcard interfaces/build.py interfaces/requirements.txt interfaces/feeder_sim_interfaces/*.* \
     interfaces/feeder_sim_interfaces/*/*)
 
 $(RUN_STAMP): setup.py package.xml $(IFC) | $(PY)
 	@echo "installing feeder_sim with the ROS 2 wheels and rerun into $(VENV), then building its part services (a minute or two)"
-	$(PIP) install -e '.[ros,replay,interfaces]'
+	$(PIP_INSTALL) -e '.[ros,replay,interfaces]'
 	$(PY) interfaces/build.py
 	touch $(RUN_STAMP)
 
 $(TEST_STAMP): setup.py package.xml $(IFC) | $(PY)
 	@echo "installing feeder_sim with the ROS 2 wheels, rerun and the test tools into $(VENV), then building its part services"
-	$(PIP) install -e '.[test]'
+	$(PIP_INSTALL) -e '.[test]'
 	$(PY) interfaces/build.py
 	touch $(TEST_STAMP) $(RUN_STAMP)
 
