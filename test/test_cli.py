@@ -323,6 +323,7 @@ def test_a_description_must_be_text():
     from feeder_sim.model.scene import parse_scene, SceneError
 
     data = {'bodies': [{'name': 'floor', 'type': 'static',
-                        'polygon': [[0, 0], [1, 0], [1, 1], [0, 1]]}], 'description': 5}
+                        'polygon': [[0, 0], [1, 0], [1, 1], [0, 1]], 'pose': [0, 0, 0]}],
+            'description': 5}
     with pytest.raises(SceneError, match='description'):
         parse_scene(data)

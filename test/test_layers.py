@@ -13,8 +13,9 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / 'feeder_sim'
 
-RANK = {'_jit': 0, '_compile_ahead': 0, '_arena': 0, 'model': 1, 'contact': 2, 'stepping': 3,
-        'simulator': 4, 'output': 5, 'run': 6, 'reports': 7, 'ros': 7, 'studies': 7, 'cli': 8}
+RANK = {'_jit': 0, '_compile_ahead': 0, '_compile_progress': 0, '_arena': 0, 'model': 1,
+        'contact': 2, 'stepping': 3, 'simulator': 4, 'output': 5, 'run': 6, 'reports': 7,
+        'ros': 7, 'studies': 7, 'cli': 8}
 PHYSICS = ('model', 'contact', 'stepping')
 FORBIDDEN_IN_PHYSICS = ('rclpy', 'mcap', 'mcap_ros2', 'matplotlib', 'rerun', 'dask',
                         'distributed', 'pyarrow', 'rosgraph_msgs', 'geometry_msgs',

@@ -1099,7 +1099,6 @@ def _sinks(value, path: str) -> tuple[SinkSpec, ...]:
 
 _TOP = {
     'name': _Field(_string, 'a text', _AUTO),
-    'description': _Field(_string, 'a line of text saying what the scene is', ''),
     # read first, by parse_scene (the numbers of the rest may be expressions of them)
     'parameters': _Field(lambda v, p: v, 'a mapping of named parameters', None, nullable=True),
     'gravity': _Field(lambda v, p: _vec(v, p, 2, '[gx, gy] (m/s^2)', (MAX_GRAVITY_MPS2,) * 2),
@@ -1116,6 +1115,7 @@ _TOP = {
                     nullable=True),
     'sensors': _Field(_sensors, 'a list of sensors (lines across the parts\' path)', (),
                       nullable=True),
+    'description': _Field(_string, 'a line of text saying what the scene is', ''),
 }
 
 
