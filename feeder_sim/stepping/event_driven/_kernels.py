@@ -795,20 +795,38 @@ def force_problem(normal, r_a, r_b, body_a, body_b, omega, acc, v_n, v_t, slidin
 
 @jit
 def zeno_speed(normal, body_a, body_b, dynamic, gravity, touch_m):
-    """Per contact, the normal speed (m/s) below which a part's corner leaving a support (a
-    static or driven body) is brought back by gravity before it rises past ``touch_m``:
-    ``sqrt(2 g_n touch_m)``, g_n the part of ``gravity`` (m/s^2) pressing along the contact
-    ``normal``; 0 on a wall or a ceiling, and between two parts, whose accumulations the
-    supports below them end."""
-    out = np.zeros(normal.shape[0])
-    for i in range(normal.shape[0]):
-        if dynamic[body_a[i]] and dynamic[body_b[i]]:
-            continue
-        g_n = -(normal[i, 0] * gravity[0] + normal[i, 1] * gravity[1])
-        if not dynamic[body_a[i]]:
-            g_n = -g_n          # the normal points from the part into the support
-        if g_n > 0.0:
-            out[i] = math.sqrt(2.0 * g_n * touch_m)
+    """Per contact, the normal speed (m/s) below which a corner leaving the body it rests on
+    is brought back by gravity before it rises past ``touch_m``: ``sqrt(2 g_n touch_m)``, g_n
+    the part of ``gravity`` (m/s^2) pressing along the contact ``normal``.
+
+    That holds where the lower body does not fall with the upper one: a support (a static or
+    driven body), or a part that rests, through contacts gravity presses, on a support (a box
+    rocking on a box on the track). Two parts that touch in flight fall together, so gravity
+    brings neither back to the other: 0 there, and on a wall or a ceiling."""
+    k = normal.shape[0]
+    out = np.zeros(k)
+    g_n = np.empty(k)
+    supported = ~dynamic
+    for i in range(k):
+        # from body_b into body_a: positive where gravity presses body_b onto body_a
+        g_n[i] = normal[i, 0] * gravity[0] + normal[i, 1] * gravity[1]
+    # a part rests on a support through a chain of pressed contacts: at most k links
+    for _ in range(k):
+        grew = False
+        for i in range(k):
+            a, b = body_a[i], body_b[i]
+            if g_n[i] > 0.0 and supported[a] and not supported[b]:
+                supported[b] = grew = True
+            elif g_n[i] < 0.0 and supported[b] and not supported[a]:
+                supported[a] = grew = True
+        if not grew:
+            break
+    for i in range(k):
+        a, b = body_a[i], body_b[i]
+        if g_n[i] > 0.0 and supported[a] and dynamic[b]:
+            out[i] = math.sqrt(2.0 * g_n[i] * touch_m)
+        elif g_n[i] < 0.0 and supported[b] and dynamic[a]:
+            out[i] = math.sqrt(-2.0 * g_n[i] * touch_m)
     return out
 
 
