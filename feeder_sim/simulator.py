@@ -63,8 +63,8 @@ def fixed_time_step(scene: Scene) -> float:
     return min([FIXED_STEP_S] + [1.0 / (STEPS_PER_PERIOD * f) for f in frequencies])
 
 
-# time_step: auto (scene.py): each candidate step and its half run a pilot of the scene; the
-# conveying speed is measured over AUTO_MEASURE_PERIODS drive periods after
+# time_step: auto (model/scene/parse.py): each candidate step and its half run a pilot of the
+# scene; the conveying speed is measured over AUTO_MEASURE_PERIODS drive periods after
 # AUTO_WARMUP_PERIODS (the parts' start-up is not what the step must resolve, and a part that
 # slides back and forth without sticking builds its step's error up over some ten periods:
 # after 5, three steps agreed to 0.3 % on a speed 6.8 % off in its steady state), and at most
@@ -175,8 +175,8 @@ def _plain(x: object) -> object:
     return x
 
 
-# What a state may hold, as a scene file's bodies may (scene.py's bounds): the check of
-# values changed from outside (Simulator._check_state).
+# What a state may hold, as a scene file's bodies may (the bounds of model/scene/specs.py): the
+# check of values changed from outside (Simulator._check_state).
 _STATE_BOUNDS = (('position', MAX_LENGTH_M, 'm'), ('angle', MAX_ANGLE_RAD, 'rad'),
                  ('velocity', MAX_SPEED_MPS, 'm/s'), ('omega', MAX_SPIN_RAD_S, 'rad/s'))
 
@@ -542,7 +542,8 @@ class Simulator:
         by one of another type, shape or memory layout (compiled steppers would compile anew for
         a minute, or read the array as float64 of the world's size in C order: wrong bodies,
         wrong memory), or a part's value set to one a scene file could not hold (NaN, infinite,
-        beyond scene.py's bounds: a run on from there gives NaN poses or numbers of 1e298 m).
+        beyond the bounds of model/scene/specs.py: a run on from there gives NaN poses or numbers
+        of 1e298 m).
 
         Values are checked where they differ from what the last advance left (its bytes are
         kept): the simulation's own numbers may leave the bounds (a part that fell off a track
@@ -597,7 +598,7 @@ class Simulator:
 
     def _check_values(self) -> None:
         """The parts' values that differ from the last trusted ones (all, after the arrays
-        changed) are finite and within the bounds of a scene file's (scene.py)."""
+        changed) are finite and within the bounds of a scene file's (model/scene/specs.py)."""
         s, dynamic = self.state, self.world.dynamic
         for k, (name, bound, unit) in enumerate(_STATE_BOUNDS):
             x = getattr(s, name)

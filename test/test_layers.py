@@ -83,6 +83,24 @@ def test_physics_imports_no_ros_mcap_plotting_or_dask(module):
     assert not bad, f'{module} imports {bad}'
 
 
+# feeder_sim.model.scene: each module imports only those ranked below it (never the package)
+SCENE = 'feeder_sim.model.scene'
+SCENE_RANK = {'errors': 0, 'specs': 0, 'expressions': 1, 'fields': 2, 'outlines': 3, 'parse': 4,
+              'files': 5}
+
+
+def test_every_scene_module_has_a_rank():
+    assert {m.rpartition('.')[2] for m in MODULES if m.startswith(SCENE + '.')} == set(SCENE_RANK)
+
+
+@pytest.mark.parametrize('module', [m for m in MODULES if m.startswith(SCENE + '.')])
+def test_scene_modules_import_one_way(module):
+    rank = SCENE_RANK[module.rpartition('.')[2]]
+    inside = {m for m in _own(module) if m == SCENE or m.startswith(SCENE + '.')}
+    bad = sorted(m for m in inside if m == SCENE or SCENE_RANK[m.rpartition('.')[2]] >= rank)
+    assert not bad, f'{module} imports the package or a module not below it: {bad}'
+
+
 def _method_of(module: str) -> str | None:
     parts = module.split('.')
     if parts[:2] == ['feeder_sim', 'stepping'] and len(parts) > 2 and parts[2] in METHODS:

@@ -620,12 +620,12 @@ def test_aliases_that_share_a_material_are_read(tmp_path):
 
 def test_the_fast_parser_reads_every_shipped_scene_as_the_python_one(tmp_path):
     # libyaml reads the files; a file it refuses is read again by PyYAML for its messages
-    from feeder_sim.model import scene as scene_module
+    from feeder_sim.model.scene import files as scene_files
     for name in shipped_scenes():
-        text = scene_module._find(name).read_text()
-        fast = yaml.load(text, Loader=scene_module._FastSceneLoader)
-        assert fast == yaml.load(text, Loader=scene_module._SceneLoader), name
-    assert yaml.load('x: 1e-3\ny: 1.0e3\n', Loader=scene_module._FastSceneLoader) == {
+        text = scene_files._find(name).read_text()
+        fast = yaml.load(text, Loader=scene_files._FastSceneLoader)
+        assert fast == yaml.load(text, Loader=scene_files._SceneLoader), name
+    assert yaml.load('x: 1e-3\ny: 1.0e3\n', Loader=scene_files._FastSceneLoader) == {
         'x': 1e-3, 'y': 1e3}
 
 

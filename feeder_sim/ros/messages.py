@@ -21,14 +21,10 @@ from sensor_msgs.msg import JointState, PointCloud2, PointField
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-from feeder_sim.model.scene import (
-    _body_name,
-    _Invalid,
-    _number,
-    MAX_LENGTH_M,
-    MAX_SPEED_MPS,
-    MAX_SPIN_RAD_S,
-)
+from feeder_sim.model.scene import MAX_LENGTH_M, MAX_SPEED_MPS, MAX_SPIN_RAD_S
+from feeder_sim.model.scene.errors import _Invalid
+from feeder_sim.model.scene.fields import _number
+from feeder_sim.model.scene.parse import _body_name
 from feeder_sim.model.world import perp
 from feeder_sim.output.impulses import PartImpulses
 from feeder_sim.output.recording import (
@@ -259,7 +255,8 @@ def _shown(text: str) -> str:
 
 
 def _scene_checked(check, value, field: str):
-    """``check`` of scene.py (the rule a scene file's field has), its refusal naming ``field``."""
+    """``check`` of model/scene/ (the rule a scene file's field has), its refusal naming
+    ``field``."""
     try:
         return check(value, field)
     except _Invalid as err:
@@ -313,7 +310,7 @@ def planar_yaw(q, field: str) -> float:
 def planar_state(pose_stamped, twist, pose_field: str, twist_field: str,
                  frames: Sequence[str]) -> tuple[list[float], list[float]]:
     """[x, y, yaw] and [vx, vy, omega] of a request's PoseStamped and Twist, every field
-    checked as a scene file's ``pose`` and ``velocity`` are (scene.py's bounds); a
+    checked as a scene file's ``pose`` and ``velocity`` are (model/scene/specs.py's bounds); a
     RequestError naming the first field that is not."""
     frame = pose_stamped.header.frame_id
     if frame not in frames:

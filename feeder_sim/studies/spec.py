@@ -43,8 +43,6 @@ from typing import Any
 import numpy as np
 
 from feeder_sim.model.scene import (
-    _check_start_overlap,
-    _Invalid,
     METHODS,
     parse_scene,
     read_scene_data,
@@ -52,6 +50,8 @@ from feeder_sim.model.scene import (
     Scene,
     SceneError,
 )
+from feeder_sim.model.scene.errors import _Invalid
+from feeder_sim.model.scene.parse import _check_start_overlap
 from feeder_sim.simulator import MAX_PUBLISH_RATE_HZ, MAX_STEPS_PER_RUN
 
 MAX_TRIALS = 100_000
