@@ -15,6 +15,8 @@ import sys
 import time
 
 import pytest
+from rcl_interfaces.srv import GetParameters
+from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_srvs.srv import SetBool, Trigger
 from test_sim_node import Graph
@@ -90,6 +92,40 @@ def test_no_node_is_one_line_and_exit_2_within_the_timeout():
     assert '/nobody_here/feeder_sim' in line and 'ROS_DOMAIN_ID' in line
     # the default 5 s, and the interpreter's start on a loaded two-core machine
     assert 5.0 <= elapsed < 5.0 + 10.0
+
+
+def test_an_answer_the_server_loses_is_asked_for_again_and_a_change_is_made_once():
+    """A server drops its answer when it has not yet matched the client's reply reader (Fast
+    DDS gives up after 100 ms; seen on a loaded machine). A node that loses its first answer
+    on ~/get_parameters: the client asks again, then pauses it exactly once."""
+    g = Graph()
+    try:
+        node = Node('lossy', context=g.context, start_parameter_services=False)
+        g.executor.add_node(node)
+        asked, paused = [], []
+
+        def get_parameters(request, response):
+            asked.append(request)
+            return response
+
+        def pause(request, response):
+            paused.append(request.data)
+            response.success, response.message = True, 'paused'
+            return response
+        service = node.create_service(GetParameters, '/lossy/get_parameters', get_parameters)
+        node.create_service(SetBool, '/lossy/pause', pause)
+        send, lost = service.send_response, []
+
+        def lose_the_first(response, header) -> None:
+            if lost:
+                send(response, header)
+            lost.append(header)
+        service.send_response = lose_the_first
+        result = feeder_sim(g, 'pause', '--node', '/lossy')
+        assert result.returncode == 0, result.stderr
+        assert paused == [True] and len(asked) >= 2
+    finally:
+        g.close()
 
 
 def test_vibration_is_checked_sent_and_applied(graph):

@@ -53,6 +53,10 @@ _POLL_S = 0.05
 _ENDPOINTS_S = 1.0
 _SENSOR_TYPES = {'blocked': Bool, 'count': UInt32, 'passed': KeyValue}
 _COMMAND_TYPE = 'std_msgs/msg/Float64MultiArray'
+# Services that only read: asking again is harmless. The first answer is awaited this long
+# (wall s) before asking again, doubling each time.
+_QUERIES = frozenset({'get_parameters', 'list_parameters', 'get_entities'})
+_RESEND_S = 0.5
 
 
 class Refused(Exception):
@@ -134,18 +138,44 @@ class _Session:
     # -- services --------------------------------------------------------------------------
 
     def call(self, srv_type, service: str, request, hint: str = ''):
-        """The answer of the node's service ``~/<service>``."""
-        name = f'{self.fqn}/{service}'
-        client = self.node.create_client(srv_type, name)
+        """The answer of the node's service ``~/<service>``.
+
+        A server drops its answer when it has not yet matched the client's reply reader
+        (Fast DDS waits 100 ms for that, then gives up): discovery is not symmetric, and
+        ``service_is_ready`` sees only the client's half. A query is therefore sent again
+        until answered; a request that changes the node is sent once, after a query on a
+        client made later has been answered, since the server learns of a participant's
+        readers in the order they were made."""
+        client = self._ready_client(srv_type, service, hint)
+        if service not in _QUERIES:
+            self._ask(self._ready_client(GetParameters, 'get_parameters', hint),
+                      GetParameters.Request(), resend=True)
+        return self._ask(client, request, resend=service in _QUERIES)
+
+    def _ready_client(self, srv_type, service: str, hint: str):
+        client = self.node.create_client(srv_type, f'{self.fqn}/{service}')
         if not self.spin_until(client.service_is_ready, self.deadline()):
             if not self.present():
                 raise Refused(self.absent())
-            raise Refused(f'{self.fqn} does not serve {name}' + (f' ({hint})' if hint else ''))
-        future = client.call_async(request)
-        if not self.spin_until(future.done, self.deadline()):
-            raise Refused(f'{name} did not answer within {self.timeout_s:g} s (a longer wait: '
-                          '--timeout S)')
-        return future.result()
+            raise Refused(f'{self.fqn} does not serve {client.srv_name}'
+                          + (f' ({hint})' if hint else ''))
+        return client
+
+    def _ask(self, client, request, resend: bool):
+        deadline = self.deadline()
+        wait_s = _RESEND_S
+        futures = [client.call_async(request)]
+
+        def answered() -> bool:
+            return any(f.done() for f in futures)
+        while not self.spin_until(answered, min(deadline, time.monotonic() + wait_s)):
+            if time.monotonic() >= deadline:
+                raise Refused(f'{client.srv_name} did not answer within {self.timeout_s:g} s '
+                              '(a longer wait: --timeout S)')
+            if resend:
+                futures.append(client.call_async(request))
+                wait_s *= 2.0
+        return next(f for f in futures if f.done()).result()
 
     def parameters(self, names: list[str]) -> list[ParameterValue]:
         return list(self.call(GetParameters, 'get_parameters',
