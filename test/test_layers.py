@@ -117,8 +117,30 @@ def test_no_stepping_method_imports_another(module):
 
 @pytest.mark.parametrize('module', [m for m in MODULES if _layer(m) in ('output', 'ros')])
 def test_output_and_ros_never_reach_into_a_stepper(module):
-    inner = sorted(m for m in _own(module) if _layer(m) == 'stepping')
+    # the package's face (STEPPERS: each method's policy) is theirs to read
+    inner = sorted(m for m in _own(module)
+                   if _layer(m) == 'stepping' and m != 'feeder_sim.stepping')
     assert not inner, f'{module} imports stepping internals: {inner}'
+
+
+# Where a method's name may decide what happens: the methods themselves, the scene's list of
+# methods (its step rules) and the reports, whose experiments compare the methods by name.
+NAMED_METHODS_ALLOWED = ('stepping', 'model', 'reports')
+
+
+@pytest.mark.parametrize('module', [m for m in MODULES
+                                    if _layer(m) not in NAMED_METHODS_ALLOWED])
+def test_no_branch_on_a_method_name_outside_stepping(module):
+    """What differs between methods is their policy (``STEPPERS[name].fixed_steps``, ...),
+    never a comparison with a method's name."""
+    branches = []
+    for node in ast.walk(ast.parse(MODULES[module].read_text())):
+        if isinstance(node, ast.Compare):
+            named = [n for n in ast.walk(node)
+                     if isinstance(n, ast.Constant) and n.value in METHODS]
+            if named:
+                branches.append(f'line {node.lineno}: {named[0].value!r}')
+    assert not branches, f'{module} branches on a method name: {branches}'
 
 
 def test_the_node_does_not_import_the_cli_run_loop():
@@ -129,6 +151,6 @@ def test_the_node_does_not_import_the_cli_run_loop():
 
 def test_the_contract_is_checked_on_real_imports():
     # the checker itself: a known import of each kind is seen
-    assert 'feeder_sim.stepping.protocol' in _own('feeder_sim.stepping.time_stepping')
+    assert 'feeder_sim.stepping.protocol' in _own('feeder_sim.stepping.time_stepping.stepper')
     assert 'rclpy' in IMPORTS['feeder_sim.ros.node']
     assert 'feeder_sim.output.frames' in _own('feeder_sim.ros.node')

@@ -25,8 +25,9 @@ from feeder_sim.contact import lcp
 from feeder_sim.contact._feature_kernels import sum_by_feature
 from feeder_sim.contact.collision import evaluate_gaps
 from feeder_sim.model.builders import build, conveyor
-from feeder_sim.simulator import _ImpulseLog, ContactReport, Simulator
-import feeder_sim.stepping.time_stepping as TS
+from feeder_sim.simulator import ContactReport, Simulator
+from feeder_sim.simulator.impulse_log import ImpulseLog
+import feeder_sim.stepping.time_stepping.stepper as TS
 
 
 def pile(n_parts, seed=1, materials=False, friction_impulse=True, compiled=False, mu=0.5):
@@ -491,7 +492,7 @@ def test_pgs_with_conjugate_steps_solves_a_frictional_pile_in_fewer_sweeps():
 @pytest.mark.parametrize('reduce_steps', [64, 3])
 def test_impulse_log_reports_the_running_sums(reduce_steps):
     sim = pile(30)
-    log, ref = _ImpulseLog(), _RunningLog()
+    log, ref = ImpulseLog(), _RunningLog()
     log._REDUCE_STEPS = reduce_steps            # 3: many reductions between two reports
     rng = np.random.default_rng(0)
     next_take, reports, rows = 40, 0, 0

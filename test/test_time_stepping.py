@@ -9,7 +9,7 @@ import pytest
 
 from feeder_sim.model.builders import box, build, conveyor, scene_dict
 from feeder_sim.simulator import Simulator
-import feeder_sim.stepping.time_stepping as TS
+import feeder_sim.stepping.time_stepping.stepper as TS
 
 G = 9.81
 

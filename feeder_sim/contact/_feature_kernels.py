@@ -1,8 +1,9 @@
 """Contact rows of many steps summed per vertex-edge feature, compiled.
 
-What the simulator's impulse log (``simulator._ImpulseLog``) does between two reports: a pile
-gives thousands of rows per step, and the numpy version of this reduction (a stable sort,
-``np.add.at`` and a dozen whole-array passes) cost more than the step of a single part.
+What the simulator's impulse log (``simulator.impulse_log.ImpulseLog``) does between two
+reports: a pile gives thousands of rows per step, and the numpy version of this reduction
+(a stable sort, ``np.add.at`` and a dozen whole-array passes) cost more than the step of a
+single part.
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 
-from feeder_sim.model.scene import parse_scene, Scene
+from feeder_sim.model.scene import parse_scene, Scene, STEP_RULES
 
 G = 9.81
 
@@ -69,12 +69,11 @@ def conveyor(*, psi: float, mu: float, theta: float, gamma: float, frequency_hz:
     speed; ``start_with_track`` starts them moving with the track instead (the point-mass
     reference's start: relative rest), which matters where nothing forgets the start (a part
     that slides back and forth without ever sticking).
-    ``time_step`` defaults to 1/400 of the vibration period for time stepping and to 1/16 of
-    it (the largest step) for the event-driven method.
+    ``time_step`` defaults to the method's step rule (``STEP_RULES``: 1/400 of the vibration
+    period for time stepping, 1/16 of it, the largest step, for the event-driven method).
     """
-    period = 1.0 / frequency_hz
     if time_step is None:
-        time_step = period / 400 if method == 'time_stepping' else period / 16
+        time_step = STEP_RULES[method].step([frequency_hz])
     w, h = part_size
     c, s = math.cos(theta), math.sin(theta)
     material = {'mu_static': mu, 'mu_dynamic': mu if mu_dynamic is None else mu_dynamic,

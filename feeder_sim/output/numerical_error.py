@@ -28,12 +28,10 @@ import math
 from typing import Any
 
 from feeder_sim.model.scene import MIN_TIME_STEP_S, Scene, SolverSpec
+from feeder_sim.stepping import STEPPERS
 
-# the order of convergence of each method in its step, where it is known
-ORDER: dict[str, int | None] = {'time_stepping': 1, 'impulse_based': None,
-                                'event_driven': None}
-STEP_RATIO = 2.0           # time_stepping, impulse_based: half or twice the step
-TOLERANCE_RATIO = 100.0    # event_driven: the tolerance / or x 100
+STEP_RATIO = 2.0           # a method whose error setting is its step: half or twice it
+TOLERANCE_RATIO = 100.0    # one whose error setting is a tolerance: it / or x 100
 MAX_TIME_STEP_S = 0.1      # the bounds of solver.time_step and solver.tolerance
 MAX_TOLERANCE = 1e-2
 
@@ -71,7 +69,7 @@ class Companion:
         """The companion's setting, as the summary reports it."""
         if self.solver is None:
             return {}
-        if self.solver.method == 'event_driven':
+        if STEPPERS[self.solver.method].error_setting == 'tolerance':
             return {'tolerance': float(self.solver.tolerance)}
         return {'time_step_s': float(self.solver.time_step)}
 
@@ -103,12 +101,12 @@ def companion(solver: SolverSpec, *, refine: bool = True) -> Companion:
     that would leave the allowed range (step <= 0.1 s, tolerance <= 1e-2) is refined instead,
     and a refined step below 1e-7 s coarsened."""
     method = solver.method
-    order = ORDER[method]
-    if method == 'event_driven':
+    order = STEPPERS[method].order
+    if STEPPERS[method].error_setting == 'tolerance':
         tol = solver.tolerance
         fine = refine or tol * TOLERANCE_RATIO > MAX_TOLERANCE
         new = tol / TOLERANCE_RATIO if fine else tol * TOLERANCE_RATIO
-        text = (f'event_driven at its tolerance {"/" if fine else "x"} '
+        text = (f'{method} at its tolerance {"/" if fine else "x"} '
                 f'{TOLERANCE_RATIO:g} ({new:g} against {tol:g}); the plain difference (its '
                 'error is not a known power of the tolerance)')
         return Companion(replace(solver, tolerance=new), fine, TOLERANCE_RATIO, order, text)

@@ -515,7 +515,7 @@ class SimNode(Node):
         the bare simulator runs them, to the bit."""
         sim = self.sim
         wall_per_s = self._wall_per_sim_s
-        if wall_per_s is None and sim.method != 'event_driven':
+        if wall_per_s is None and sim.stepping.fixed_steps:
             # not measured yet: a guess from the number of steps
             wall_per_s = _SLICE_WALL_S / (_SLICE_FIRST_STEPS * sim.scene.solver.time_step)
         while True:

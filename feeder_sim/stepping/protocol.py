@@ -17,7 +17,7 @@ from typing import ClassVar, Protocol
 import numpy as np
 
 from feeder_sim.contact.dynamics import ContactSet, SolverStats
-from feeder_sim.model.scene import SolverSpec
+from feeder_sim.model.scene import Scene, SolverSpec, StepRule
 from feeder_sim.model.world import State, World
 
 
@@ -31,7 +31,21 @@ class StepContacts:
 
 
 class Stepper(Protocol):
-    """A stepping method, built as ``Method(world, spec, stats, settings)``."""
+    """A stepping method, built as ``Method(world, spec, stats, settings)``.
+
+    Its class carries the method's policy, which the simulator, the node and the reports ask
+    for instead of branching on its name."""
+
+    name: ClassVar[str]
+    step_rule: ClassVar[StepRule]
+    """Its step from the scene's drives (the scene's ``STEP_RULES``)."""
+    fixed_steps: ClassVar[bool]
+    """It advances in steps of at most ``spec.time_step``, whose count a frame's cost
+    follows; False: from event to event (``after_event`` sees each)."""
+    error_setting: ClassVar[str]
+    """What a numerical-error estimate varies: ``'time_step'`` (s) or ``'tolerance'``."""
+    order: ClassVar[int | None]
+    """Its order of convergence in ``error_setting``, None where it is not known."""
 
     def __init__(self, world: World, spec: SolverSpec, stats: SolverStats,
                  settings: object | None = None) -> None: ...
@@ -42,6 +56,12 @@ class Stepper(Protocol):
 
     def reset(self) -> None:
         """The prescribed motion changed at ``state.t``: forget what was derived from it."""
+        ...
+
+    @classmethod
+    def step_for(cls, scene: Scene) -> float | None:
+        """The step (s) it takes on ``scene`` when the scene's step was chosen for another
+        method; None where the scene's step stands."""
         ...
 
 
@@ -114,6 +134,12 @@ class StepperBase:
     needs from them in ``prepare``."""
 
     settings_type: type
+    # the policy (see Stepper)
+    name: ClassVar[str]
+    step_rule: ClassVar[StepRule]
+    fixed_steps: ClassVar[bool]
+    error_setting: ClassVar[str]
+    order: ClassVar[int | None]
     # Called with the state and the contacts reported since the previous call at every event a
     # method locates (event_driven); the energy check of :mod:`feeder_sim.simulator` uses it.
     after_event: Callable[[State, list[StepContacts]], None] | None = None
@@ -131,3 +157,13 @@ class StepperBase:
 
     def prepare(self) -> None:
         """Build what the method derives from its world, spec and settings."""
+
+    @classmethod
+    def step_for(cls, scene: Scene) -> float | None:
+        """A method whose error its step sets (a known order in the step) takes its own
+        rule's step on a scene whose step was chosen for another method, where that is finer;
+        for the others the scene's step (a largest step) stands."""
+        if cls.order is None or cls.error_setting != 'time_step':
+            return None
+        step = cls.step_rule.step(scene.drive_frequencies_hz())
+        return step if step < scene.solver.time_step else None

@@ -50,6 +50,8 @@ from feeder_sim.model.scene.specs import (
     SinkSpec,
     SolverSpec,
     SourceSpec,
+    STEP_RULES,
+    StepRule,
     Vibration,
     within_bounds,
 )
@@ -60,5 +62,5 @@ __all__ = [
     'METHODS', 'MIN_PIECE_WIDTH_M', 'MIN_TIME_STEP_S', 'OutcomeSpec', 'overlap_problem',
     'override_solver', 'parse_scene', 'read_scene_data', 'read_yaml', 'Scene', 'scene_dirs',
     'scene_to_dict', 'SceneError', 'SensorSpec', 'shipped_scenes', 'SinkSpec', 'SolverSpec',
-    'SourceSpec', 'Vibration', 'within_bounds',
+    'SourceSpec', 'STEP_RULES', 'StepRule', 'Vibration', 'within_bounds',
 ]

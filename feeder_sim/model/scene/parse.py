@@ -41,7 +41,7 @@ from feeder_sim.model.scene.fields import (
 )
 from feeder_sim.model.scene.outlines import _decomposed, _outline_key, _pieces, _polygon
 from feeder_sim.model.scene.specs import (
-    AUTO_FIRST_STEPS_PER_PERIOD,
+    AUTO_FIRST_STEP,
     AUTO_MIN_TOLERANCE,
     AUTO_TOLERANCE,
     BODY_TYPES,
@@ -169,13 +169,11 @@ def _auto_method(method: str, path: str) -> None:
 def _auto_first_step(solver: SolverSpec, bodies) -> SolverSpec:
     """``time_step: auto``: the pilot's first candidate, a fraction of the fastest drive's
     period (the pilot measures a conveying speed: a scene without a drive has none)."""
-    frequencies = [b.vibration.frequency for b in bodies
-                   if b.vibration is not None and b.vibration.frequency > 0.0]
-    if not frequencies:
+    step = AUTO_FIRST_STEP.step(b.vibration.frequency for b in bodies if b.vibration is not None)
+    if not math.isfinite(step):
         raise _Invalid('solver.time_step', 'auto picks the step that keeps the conveying speed '
                                            'within solver.tolerance, and no body vibrates '
                                            '(vibration.frequency > 0): give a step in s')
-    step = 1.0 / (AUTO_FIRST_STEPS_PER_PERIOD * max(frequencies))
     return replace(solver, time_step=min(max(step, MIN_TIME_STEP_S), 0.1))
 
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from feeder_sim.contact.candidates import corner_piece_candidates
 from feeder_sim.contact.dynamics import BOX, ContactSet, NONE, SLAVED, SolverStats
+from feeder_sim.model.scene import STEP_RULES
 from feeder_sim.model.world import perp, State, World
 from feeder_sim.stepping.event_driven import _kernels as kern
 from feeder_sim.stepping.event_driven.bookkeeping import (
@@ -42,13 +43,10 @@ _E = kern.DP_E
 
 
 def largest_step(world: World, time_step: float) -> float:
-    """The scene's time step (s), at most a sixteenth of every drive's period."""
-    h = time_step
-    for i in world.driven:
-        f = world.drives[i].frequency_hz
-        if f > 0:
-            h = min(h, 1.0 / (16.0 * f))
-    return h
+    """The scene's time step (s), at most the method's step rule's share of the period of
+    every drive as it is now commanded."""
+    return min(time_step, STEP_RULES['event_driven'].step(
+        world.drives[i].frequency_hz for i in world.driven))
 
 
 def closed_form_margin(world: World, length: float) -> float:

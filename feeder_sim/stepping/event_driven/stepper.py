@@ -101,6 +101,7 @@ import math
 
 import numpy as np
 
+from feeder_sim.model.scene import STEP_RULES
 from feeder_sim.model.world import State
 from feeder_sim.stepping.event_driven import _kernels as kern
 from feeder_sim.stepping.event_driven import phases
@@ -129,6 +130,11 @@ class EventDriven(StepperBase):
     """Advances a state to any requested time, stopping at every contact event."""
 
     settings_type = EventSettings
+    name = 'event_driven'
+    step_rule = STEP_RULES[name]
+    fixed_steps = False
+    error_setting = 'tolerance'
+    order = None          # its error is no known power of its tolerance
 
     def prepare(self) -> None:
         world, spec = self.world, self.spec

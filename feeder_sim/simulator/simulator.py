@@ -1,26 +1,17 @@
-"""One simulated world and the way to drive it: the API the CLI, the ROS node and scripts share.
-
->>> sim = Simulator('track_one_box')
->>> sim.advance_to(0.5)              # integrate to t = 0.5 s of simulated time
->>> sim.advance_by(0.1)              # and 0.1 s more
->>> names, origins, angles = sim.part_poses()
->>> sim.command_vibration(amplitude_m=0.5e-3, frequency_hz=50.0)
-"""
+"""The facade of a simulation: :class:`Simulator` (see the package's docstring for its use)."""
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 import copy
-from dataclasses import dataclass, replace
+from dataclasses import replace
 import logging
 import math
 import os
-import time
 
 import numpy as np
 
 from feeder_sim import _jit
-from feeder_sim.contact._feature_kernels import sum_by_feature
 from feeder_sim.contact.dynamics import SolverStats
 from feeder_sim.model.checks import is_number
 from feeder_sim.model.scene import (
@@ -30,7 +21,6 @@ from feeder_sim.model.scene import (
     MAX_LENGTH_M,
     MAX_SPEED_MPS,
     MAX_SPIN_RAD_S,
-    MIN_TIME_STEP_S,
     overlap_problem,
     override_solver,
     parse_scene,
@@ -39,127 +29,18 @@ from feeder_sim.model.scene import (
 )
 from feeder_sim.model.vibration import check_command
 from feeder_sim.model.world import State, World
-from feeder_sim.stepping import StepContacts, STEPPERS
+from feeder_sim.simulator.energy_check import CHECK_ENERGY_VAR, EnergyCheck, env_tolerance
+from feeder_sim.simulator.feed import Feed
+from feeder_sim.simulator.impulse_log import ContactReport, ImpulseLog
+from feeder_sim.simulator.time_step_pilot import auto_time_step
+from feeder_sim.stepping import Stepper, STEPPERS
 
 log = logging.getLogger('feeder_sim')
 
-CHECK_ENERGY_VAR = 'FEEDER_SIM_CHECK_ENERGY'
 # A run of more steps than this loses the step in the round-off of the time itself (float64
 # resolves t to 1e-16 t): it would not end.
 MAX_STEPS_PER_RUN = 1e12
 MAX_PUBLISH_RATE_HZ = 1e5
-
-
-# time_stepping is first order: about 2 % off on conveying speed at 400 steps per drive period
-# (README, Validation); a scene without a drive gets 1 ms
-STEPS_PER_PERIOD = 400
-FIXED_STEP_S = 1e-3
-
-
-def fixed_time_step(scene: Scene) -> float:
-    """A time_stepping step for a scene whose own step was chosen for another method (s)."""
-    frequencies = [b.vibration.frequency for b in scene.bodies
-                   if b.vibration is not None and b.vibration.frequency > 0.0]
-    return min([FIXED_STEP_S] + [1.0 / (STEPS_PER_PERIOD * f) for f in frequencies])
-
-
-# time_step: auto (model/scene/parse.py): each candidate step and its half run a pilot of the
-# scene; the conveying speed is measured over AUTO_MEASURE_PERIODS drive periods after
-# AUTO_WARMUP_PERIODS (the parts' start-up is not what the step must resolve, and a part that
-# slides back and forth without sticking builds its step's error up over some ten periods:
-# after 5, three steps agreed to 0.3 % on a speed 6.8 % off in its steady state), and at most
-# AUTO_MAX_HALVINGS halvings are tried (50 -> 12 800 steps per period)
-AUTO_WARMUP_PERIODS = 20
-AUTO_MEASURE_PERIODS = 10
-AUTO_MAX_HALVINGS = 8
-# below this share of the drive's peak speed a conveying speed counts as standing still: the
-# error is then relative to it (a part that sticks has no speed to be 1 % of)
-AUTO_SPEED_FLOOR = 0.01
-
-
-def auto_time_step(scene: Scene) -> tuple[Scene, dict]:
-    """``solver.time_step: auto``: the scene with the largest step of the halving ladder from
-    its first candidate whose conveying speed (the mean along-track speed of the parts present
-    at the start, over a short pilot) has a Richardson estimate of its relative error within
-    ``solver.tolerance`` over two halvings (time_stepping is first order: error(h) ~
-    2 |v(h/2) - v(h)| ~ 4 |v(h/4) - v(h/2)|, the larger taken); and what the pilot found and
-    cost."""
-    solver = scene.solver
-    drives = [b.vibration for b in scene.bodies
-              if b.vibration is not None and b.vibration.frequency > 0.0]
-    period = 1.0 / max(d.frequency for d in drives)
-    floor = AUTO_SPEED_FLOOR * max(d.amplitude * 2.0 * math.pi * d.frequency for d in drives)
-    warm, end = AUTO_WARMUP_PERIODS * period, (AUTO_WARMUP_PERIODS + AUTO_MEASURE_PERIODS) * period
-    wall0 = time.perf_counter()
-    candidates: list[dict] = []
-
-    def speed(h: float) -> float:
-        sim = Simulator(replace(scene, solver=replace(solver, time_step=h, time_step_auto=False)))
-        sim.advance_to(warm)
-        before = dict(zip(sim.part_poses()[0], sim.track_coordinates()[0]))
-        sim.advance_to(end)
-        after = dict(zip(sim.part_poses()[0], sim.track_coordinates()[0]))
-        # by name: parts that a source adds or a sink takes on the way are not measured
-        moved = [after[n] - before[n] for n in before if n in after]
-        if not moved:
-            raise SceneError('auto measures the conveying speed of the parts on the track, '
-                             f'and no part is there from t = {warm:g} to {end:g} s: give a step '
-                             'in s', 'solver.time_step', scene.source)
-        v = float(np.mean(moved)) / (end - warm)
-        candidates.append({'time_step_s': h, 'conveying_speed_mps': v})
-        return v
-
-    # A step is taken when two halvings agree that it is within the tolerance: its own
-    # difference to its half, 2 |v(h) - v(h/2)|, and the next one's scaled to it,
-    # 4 |v(h/2) - v(h/4)|. One halving alone can agree by chance while the error still
-    # changes sign with the step (near lift-off at Gamma 0.95: an estimate of 0.02 % at 100
-    # steps per period that was 1.2 % off).
-    h, chosen, error = solver.time_step, None, math.nan
-    diff, scale = math.nan, 1.0
-    speeds = [speed(h)]
-    for _ in range(AUTO_MAX_HALVINGS):
-        if h / 4 < MIN_TIME_STEP_S:
-            break
-        while len(speeds) < 3:
-            speeds.append(speed(h / 2 ** len(speeds)))
-        v_h, v_half, v_quarter = speeds
-        diff, scale = abs(v_half - v_h), max(abs(v_quarter), floor)
-        estimate = max(2.0 * diff, 4.0 * abs(v_quarter - v_half))
-        if estimate <= solver.tolerance * scale:
-            chosen, error = h, estimate / scale
-            break
-        h = h / 2
-        speeds = speeds[1:]
-    met = chosen is not None
-    if not met:
-        chosen = candidates[-1]['time_step_s']
-        log.warning('%s: time_step auto: no step down to %g s keeps the conveying speed within '
-                    '%g (the last halving changed it by %.3g %%); using %g s', scene.name,
-                    chosen, solver.tolerance, 100.0 * diff / scale, chosen)
-    wall = time.perf_counter() - wall0
-    steps = sum((end / c['time_step_s']) for c in candidates)
-    report = {'time_step_s': chosen, 'steps_per_period': period / chosen,
-              'tolerance': solver.tolerance, 'met': met,
-              'estimated_relative_error': error,
-              'fixed_steps_per_period': STEPS_PER_PERIOD,
-              'pilot': {'simulated_s_each': end, 'candidates': candidates,
-                        'steps': int(round(steps)), 'wall_s': wall}}
-    log.info('%s: time_step auto: %g s (%.0f steps per drive period, fixed: %d), conveying '
-             'speed within %.2g %% by the pilot: %d runs of %g s, %d steps, %.2f s wall',
-             scene.name, chosen, period / chosen, STEPS_PER_PERIOD, 100.0 * error,
-             len(candidates), end, steps, wall)
-    return replace(scene, solver=replace(solver, time_step=chosen, time_step_auto=False)), report
-
-
-def _env_tolerance(text: str) -> float:
-    try:
-        tolerance = float(text)
-    except ValueError:
-        tolerance = math.nan
-    if not tolerance >= 0.0:
-        raise ValueError(f'{CHECK_ENERGY_VAR} must be a tolerance >= 0 (e.g. 1e-6), '
-                         f'got {text!r}')
-    return tolerance
 
 
 def _plain(x: object) -> object:
@@ -200,220 +81,8 @@ def _extent_m(body) -> float:
     return float(np.max(pts.max(0) - pts.min(0)))
 
 
-@dataclass
-class ContactReport:
-    """Contacts active since the previous report, with the impulses (N s) they transmitted."""
-
-    point: np.ndarray            # (k, 2) m, latest position
-    normal: np.ndarray           # (k, 2)
-    normal_impulse: np.ndarray   # (k,) N s, summed over the interval (collisions included)
-    tangent_impulse: np.ndarray  # (k,) N s
-    body_a: np.ndarray           # (k,) vertex body
-    body_b: np.ndarray           # (k,) edge body
-
-    @property
-    def n(self) -> int:
-        return len(self.normal_impulse)
-
-
-class _ImpulseLog:
-    """Sums impulses per vertex-edge feature between two reports.
-
-    A pile has hundreds of contacts per step, so nothing is done per contact in Python:
-    ``add`` keeps each step's arrays and they are reduced by feature (compiled:
-    ``contact._feature_kernels.sum_by_feature``) every ``_REDUCE_STEPS`` steps, which bounds
-    the memory when nobody takes reports, and in ``take``. The report is what summing step by
-    step gives: features in order of first appearance since the previous report
-    (deterministic, so recordings are too), the latest point and normal, impulses summed in
-    step order from -0.0, so even the bits and the sign of a zero match a running ``+=``.
-    """
-
-    _REDUCE_STEPS = 64
-
-    def __init__(self) -> None:
-        # the reduced part (if any) first, then one per step since the last reduction:
-        # (key, point, normal, p_n, p_t, body_a, body_b)
-        self._parts: list[tuple[np.ndarray, ...]] = []
-        self._steps = 0             # parts added since the last reduction
-
-    def add(self, sc: StepContacts) -> None:
-        c = sc.cs.contacts
-        if not c.n:
-            return
-        key = (c.vertex_a.astype(np.int64) << 32) | c.edge_b.astype(np.int64)
-        self._parts.append((key, c.point, c.normal, sc.normal_impulse, sc.tangent_impulse,
-                            c.body_a, c.body_b))
-        self._steps += 1
-        if self._steps >= self._REDUCE_STEPS:
-            self._reduce()
-
-    def _reduce(self) -> None:
-        """Replace the parts by one with a row per feature."""
-        if not self._steps:
-            return
-        self._steps = 0
-        self._parts = [sum_by_feature(*(np.concatenate(f)
-                                        for f in zip(*self._parts, strict=True)))]
-
-    def take(self) -> ContactReport:
-        self._reduce()
-        parts, self._parts = self._parts, []
-        if parts:
-            _, point, normal, p_n, p_t, body_a, body_b = parts[0]
-            on = p_n > 0.0
-            if on.any():
-                return ContactReport(point.compress(on, axis=0), normal.compress(on, axis=0),
-                                     p_n[on], p_t[on], body_a[on].astype(np.int64),
-                                     body_b[on].astype(np.int64))
-        z = np.zeros(0)
-        return ContactReport(np.zeros((0, 2)), np.zeros((0, 2)), z, z.copy(),
-                             np.zeros(0, int), np.zeros(0, int))
-
-
 class UnknownPart(ValueError):
     """A part or part template named that the simulation does not have."""
-
-
-class EnergyInvariantError(AssertionError):
-    """Mechanical energy rose by more than the check allows where nothing could supply it."""
-
-
-class EnergyCheck:
-    """Asserts the invariant of passive contact: between impacts with e <= 1 and without drive
-    work, the parts' mechanical energy never rises.
-
-    Checked after every step of a time-stepped method and at every event of ``event_driven``
-    (and at the end of each call). The rise is measured from the energy at the last point
-    where the invariant could not be applied: a step or event interval in which a part touched
-    a moving driven body takes energy from the drive, so the reference is taken again after
-    it. ``tolerance`` is relative to the scene's energy scale (:meth:`Simulator.energy_scale_j`).
-    With ``raise_error`` a violation raises :class:`EnergyInvariantError`; otherwise the
-    largest rise is kept in ``largest_rise`` for a report.
-    """
-
-    def __init__(self, sim: Simulator, tolerance: float, *, raise_error: bool = True) -> None:
-        if not (is_number(tolerance) and tolerance >= 0.0):
-            raise ValueError('check_energy must be a tolerance >= 0 (relative to the energy '
-                             f'scale, e.g. 1e-6), got {tolerance!r}')
-        self.sim = sim
-        self.tolerance = float(tolerance)
-        self.raise_error = raise_error
-        self.scale_j = sim.energy_scale_j()
-        self.reference_j = sim.mechanical_energy()
-        self.largest_rise = 0.0          # of scale_j
-        self.checks = 0
-        self.rebased = 0                 # intervals with drive work
-        self._seen = 0                   # reports of this advance already checked per event
-
-    def _drive_work(self, reports: list[StepContacts], t: float) -> bool:
-        w = self.sim.world
-        if not len(w.driven):
-            return False
-        seg = w.drive_segments(t)
-        moving = w.driven[(seg.amplitude_m * seg.omega_rad_s > 0.0) | (seg.offset_m != 0.0)]
-        if not len(moving):
-            return False
-        for r in reports:
-            c = r.cs.contacts
-            pushed = (r.normal_impulse != 0.0) | (r.tangent_impulse != 0.0)
-            if np.any(pushed & (np.isin(c.body_a, moving) | np.isin(c.body_b, moving))):
-                return True
-        return False
-
-    def check(self, state: State, reports: list[StepContacts]) -> None:
-        """The invariant after an interval whose contacts were ``reports``."""
-        self.checks += 1
-        energy = (self.sim.world.kinetic_energy(state)
-                  + self.sim.world.potential_energy(state))
-        if self._drive_work(reports, state.t):
-            self.rebased += 1
-            self.reference_j = energy
-            return
-        rise = (energy - self.reference_j) / self.scale_j
-        if rise > self.largest_rise:
-            self.largest_rise = rise
-        if rise > self.tolerance:
-            if self.raise_error:
-                raise EnergyInvariantError(
-                    f'{self.sim.scene.name} ({self.sim.method}): mechanical energy rose by '
-                    f'{rise:.3g} of the energy scale {self.scale_j:.3g} J at t = '
-                    f'{state.t:.9f} s (tolerance {self.tolerance:.3g}) without drive work')
-        # energy lost stays lost: a later rise is measured from the lowest level
-        self.reference_j = min(self.reference_j, energy)
-
-    def after_event(self, state: State, reports: list[StepContacts]) -> None:
-        self._seen += len(reports)
-        self.check(state, reports)
-
-    def after_advance(self, state: State, reports: list[StepContacts]) -> None:
-        self.check(state, reports[self._seen:])
-        self._seen = 0
-
-
-class Feed:
-    """A scene's sources and sinks while it runs (see ``SourceSpec`` and ``SinkSpec``).
-
-    New parts are named ``<template>_<k>``; ``events`` lists (t s, name, what) with what one
-    of ``added``, ``blocked`` (the place was taken: the arrival waits for the next),
-    ``fell_back`` (below a sink's height) and ``left`` (past the exit)."""
-
-    def __init__(self, scene: Scene) -> None:
-        self.sources = scene.sources
-        self.sinks = scene.sinks
-        self.rng = [np.random.default_rng(src.seed) for src in self.sources]
-        self.next_t = [src.start for src in self.sources]
-        self.added = [0] * len(self.sources)
-        self.events: list[tuple[float, str, str]] = []
-
-    def next_arrival(self) -> float:
-        return min(self.next_t, default=math.inf)
-
-    def counts(self) -> dict[str, int]:
-        kinds = ('added', 'blocked', 'fell_back', 'left', 'lost')
-        return {k: sum(e[2] == k for e in self.events) for k in kinds}
-
-    def arrive(self, sim: Simulator) -> None:
-        """The arrival due now (the earliest source's)."""
-        k = int(np.argmin(self.next_t))
-        src, rng, t = self.sources[k], self.rng[k], self.next_t[k]
-        (x_lo, x_hi), (y_lo, y_hi) = src.region
-        x, y = rng.uniform(x_lo, x_hi), rng.uniform(y_lo, y_hi)
-        shares = np.array([share for _, _, share in src.orientations])
-        _, angle, _ = src.orientations[rng.choice(len(shares), p=shares / shares.sum())]
-        if math.isnan(angle):
-            angle = sim.template_body(src.template).pose[2]
-        name = sim.free_name(src.template, self.added[k] + 1)
-        try:
-            sim.add_part(src.template, name, [x, y, angle])
-        except SceneError:
-            self.events.append((t, name, 'blocked'))
-        else:
-            self.added[k] += 1
-            self.events.append((t, name, 'added'))
-        done = src.count and self.added[k] >= src.count
-        self.next_t[k] = math.inf if done else t + src.interval
-
-    def take_away(self, sim: Simulator) -> None:
-        """Remove the parts below a sink's height or past the exit."""
-        if not self.sinks:
-            return
-        names, _, _ = sim.part_poses()
-        along, com = sim.exit_progress()
-        exit_at = sim.scene.outcomes.exit_position
-        gone = []
-        for name, s, (_, y) in zip(names, along, com, strict=True):
-            for sink in self.sinks:
-                if sink.below is not None and y < sink.below:
-                    gone.append((name, 'fell_back'))
-                    break
-                if sink.past_exit and exit_at is not None and s >= exit_at:
-                    gone.append((name, 'left'))
-                    break
-        for name, what in gone:
-            if sim.world.n == 1:
-                break                 # a world keeps one body: the last part stays
-            sim.remove_part(name)
-            self.events.append((sim.t, name, what))
 
 
 class Simulator:
@@ -436,14 +105,13 @@ class Simulator:
         elif not isinstance(scene, Scene):
             raise TypeError('scene must be a Scene, the data of a scene file (a mapping), a '
                             f'scene file path or a shipped scene name, got {type(scene).__name__}')
-        if time_step is None and method == 'time_stepping' != scene.solver.method:
-            step = fixed_time_step(scene)
-            if step < scene.solver.time_step:
-                time_step = step
-                log.info("%s: %s's step %g s is too coarse for time_stepping; using %g s "
-                         '(%d steps per drive period; a time step given sets another)',
-                         scene.name, scene.solver.method, scene.solver.time_step, step,
-                         STEPS_PER_PERIOD)
+        if time_step is None and method not in (None, scene.solver.method):
+            time_step = STEPPERS[method].step_for(scene)
+            if time_step is not None:
+                log.info("%s: %s's step %g s is too coarse for %s; using %g s (%g steps per "
+                         'drive period; a time step given sets another)', scene.name,
+                         scene.solver.method, scene.solver.time_step, method, time_step,
+                         STEPPERS[method].step_rule.steps_per_period)
         changes = {k: v for k, v in (('method', method), ('time_step', time_step),
                                      ('tolerance', tolerance),
                                      ('friction_impulse', friction_impulse)) if v is not None}
@@ -452,7 +120,7 @@ class Simulator:
                                                           f'{scene.name} (override)'))
         self.time_step_pilot: dict | None = None      # what time_step: auto found and cost
         if scene.solver.time_step_auto:
-            scene, self.time_step_pilot = auto_time_step(scene)
+            scene, self.time_step_pilot = auto_time_step(scene, Simulator)
         self.scene = scene
         self._scene_at_start = scene
         self.world = World.from_scene(scene)
@@ -465,11 +133,11 @@ class Simulator:
         self.state = self.world.initial_state()
         self._checked_arrays: tuple[np.ndarray, ...] | None = None   # see _check_state
         self._trusted: tuple[bytes, ...] | None = None                # see _check_state
-        self._log = _ImpulseLog()
+        self._log = ImpulseLog()
         self._settings = settings
         self.initial_energy_j = self.mechanical_energy()
         if check_energy is None and os.environ.get(CHECK_ENERGY_VAR):
-            check_energy = _env_tolerance(os.environ[CHECK_ENERGY_VAR])
+            check_energy = env_tolerance(os.environ[CHECK_ENERGY_VAR])
         self.energy_check = None if check_energy is None else EnergyCheck(self, check_energy)
         self._stepper_made = self._make_stepper()
         self.feed = Feed(scene) if scene.sources or scene.sinks else None
@@ -495,6 +163,11 @@ class Simulator:
     def t(self) -> float:
         """Simulated time, s."""
         return self.state.t
+
+    @property
+    def stepping(self) -> type[Stepper]:
+        """The stepping method's class: its policy (``fixed_steps``, ``order``, ...)."""
+        return STEPPERS[self.scene.solver.method]
 
     @property
     def method(self) -> str:
@@ -659,7 +332,7 @@ class Simulator:
 
         A time-stepped method is advanced one ``time_step`` per call, on the grid it steps on
         anyway; only ``impulse_based``, whose own steps adapt, has them cut there too."""
-        h = math.inf if self.method == 'event_driven' else self.scene.solver.time_step
+        h = self.scene.solver.time_step if self.stepping.fixed_steps else math.inf
         while t_end - self.state.t > 1e-9 * self.scene.solver.time_step:
             reports = self._stepper.advance(self.state, min(t_end, self.state.t + h))
             for report in reports:
@@ -694,7 +367,7 @@ class Simulator:
                 d.reset()
         self.state = self.world.initial_state()
         self._next_name = {}
-        self._log = _ImpulseLog()
+        self._log = ImpulseLog()
         self._stepper_made = self._make_stepper()
         if self.energy_check is not None:
             self.energy_check.reference_j = self.mechanical_energy()
@@ -847,7 +520,7 @@ class Simulator:
         # caller may set is not refused at the next advance)
         self._check_arrays()
         self._trust_state()
-        self._log = _ImpulseLog()
+        self._log = ImpulseLog()
         self._stepper_made = None
         if self.energy_check is not None:
             self.energy_check.reference_j = self.mechanical_energy()

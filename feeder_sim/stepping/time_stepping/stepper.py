@@ -19,7 +19,7 @@ never by a velocity bias, so a landing gains no energy. Both the depth a vertex 
 midpoint and the gap from which a closing contact acts are at most half a step's approach, so
 a step in which a pair of pieces could close by more than ``substep_depth`` x
 ``collision.DEPTH_FRACTION`` x the thinner piece in half a step is shortened first
-(``_time_stepping_kernels.safe_step_inline``, counted in ``stats.substeps``): a part thrown at
+(``_kernels.safe_step_inline``, counted in ``stats.substeps``): a part thrown at
 1 000 m/s at a 1 um foil stops on its face at dt = 1 ms, and no contact acts from further than
 that share of the thinner piece (``test_fast_parts.py``). The projection respects every
 contact of the step outside piles, also those left out of the impulse problem, and moves no
@@ -93,7 +93,7 @@ island's problem is the ``dynamics.assemble`` layout (normals, then the friction
 
 Compiled paths and their references
 -----------------------------------
-``TimeStepper.advance`` runs whole steps in ``_time_stepping_kernels.advance``, many per call,
+``TimeStepper.advance`` runs whole steps in ``_kernels.advance``, many per call,
 with the operations of ``TimeStepper.step`` in the same order: the same bits, frames, counters
 and contact reports (test/test_pile.py, test/test_fingerprint.py). ``step`` stays as the
 reference and takes the steps the kernel hands back: a Dantzig answer missing ``lcp_tol``
@@ -151,9 +151,10 @@ from feeder_sim.contact.dynamics import (
     second_pass,
     SolverStats,
 )
+from feeder_sim.model.scene import STEP_RULES
 from feeder_sim.model.world import State, World
-from feeder_sim.stepping import _time_stepping_kernels as TK
 from feeder_sim.stepping.protocol import CheckedSettings, StepContacts, StepperBase
+from feeder_sim.stepping.time_stepping import _kernels as TK
 
 # First size of each scratch arena of the compiled step (bytes): a single part's step needs
 # ~20 kB; a pile's step ~1 kB per vertex. A step that needs more grows them for the next call.
@@ -208,7 +209,7 @@ class TimeStepSettings(CheckedSettings):
     pgs_tol_mps: float = 1e-3      # velocity residual (m/s) the PGS path must reach
     pgs_max_sweeps: int = 200
     pgs_check: int = 2             # PGS sweeps between convergence tests (and NNCG steps)
-    compiled: bool = True          # whole steps in _time_stepping_kernels.advance; False: the
+    compiled: bool = True          # whole steps in _kernels.advance; False: the
     #                                Python reference, step by step
     pgs_omega: float = 1.3         # over-relaxation of the large-island PGS (24 instead of
     #                                33 sweeps per solve in the 200-part pile, same result)
@@ -363,7 +364,7 @@ class _IslandGeometry:
 class _KernelCall:
     """A compiled kernel called through the machine code of the overload its previous call
     took. numba's dispatch types every argument in Python before each call, some 15 us for the
-    80-odd arrays ``_time_stepping_kernels.advance`` takes (of 25 us a call costs; a node at
+    80-odd arrays ``_kernels.advance`` takes (of 25 us a call costs; a node at
     100 frames per second calls it 100 times per simulated second, a control loop 1000). The
     entry point unboxes the same arguments without looking at their types, so it is only
     taken while they cannot have changed: every argument but the ``watched`` ones is made by
@@ -403,6 +404,11 @@ class TimeStepper(StepperBase):
     """Advances a state by fixed steps of ``spec.time_step``."""
 
     settings_type = TimeStepSettings
+    name = 'time_stepping'
+    step_rule = STEP_RULES[name]
+    fixed_steps = True
+    error_setting = 'time_step'
+    order = 1             # Moreau's midpoint step: first order in the step
 
     def prepare(self) -> None:
         world = self.world
@@ -539,7 +545,7 @@ class TimeStepper(StepperBase):
 
     def safe_step(self, state: State, h: float) -> float:
         """The step the state can take, at most ``h`` (s): shorter where a pair of pieces could
-        close faster than the scheme resolves (``_time_stepping_kernels.safe_step_inline``),
+        close faster than the scheme resolves (``_kernels.safe_step_inline``),
         counted in ``stats.substeps``."""
         bodies, shapes = self._compiled
         step = TK.safe_step(heap_state(), float(h), state.position, state.angle,
@@ -550,7 +556,7 @@ class TimeStepper(StepperBase):
 
     def _advance_compiled(self, state: State, t_end: float,
                           reports: list[StepContacts]) -> int:
-        """Steps of ``_time_stepping_kernels.advance`` towards ``t_end``; their contacts are
+        """Steps of ``_kernels.advance`` towards ``t_end``; their contacts are
         appended to ``reports`` as one entry (rows in step order). Returns the kernel's code."""
         stats, rep = self.stats, self._reports
         ints, floats, msgs, n_msgs = self._io
@@ -1029,7 +1035,7 @@ class TimeStepper(StepperBase):
         if not st.reuse_row_states:
             states_in[:] = -1
         if large.any():
-            # the order PGS sweeps a pile in: bottom-up (_time_stepping_kernels._heights)
+            # the order PGS sweeps a pile in: bottom-up (_kernels._heights)
             point = cs.contacts.point[order]
             height = -(point[:, 0] * w.gravity[0] + point[:, 1] * w.gravity[1])
             # PGS starts from the previous step's impulses (Dantzig from scratch)
