@@ -121,8 +121,10 @@ class Drive:
         return end if seg.offset_m and end > t else math.inf
 
     def command(self, t: float, amplitude_m: float, frequency_hz: float) -> None:
-        """Switch to a new amplitude and frequency from time ``t`` on, keeping d(t) continuous."""
-        check_command(amplitude_m, frequency_hz)
+        """Switch to a new amplitude and frequency from time ``t`` on, keeping d(t) continuous.
+
+        The values are the caller's to check (:func:`check_command`, as the simulator does at
+        its boundary): a drive takes what it is given."""
         d, v, _ = self.motion(t)
         old = self.segment(t)
         old_phase = old.phase_rad + TWO_PI * old.frequency_hz * (t - old.start_s)
