@@ -16,7 +16,7 @@ from feeder_sim import __version__
 
 class _StopSignals:
     """SIGINT and SIGTERM during ``feeder-sim run``. Until the first frame is recorded
-    (loading, compiling: native code that holds Python's handlers off for up to a minute)
+    (loading, compiling: native code that holds Python's handlers off while it runs)
     nothing of the run exists, so the process ends at once, from a thread woken by the
     signal, and removes the log it had begun (``unfinished``). After, the run ends after the
     frame under way: the log is finalized, the summary and the plot cover the time

@@ -1,7 +1,8 @@
 """Compiled narrow phase and contact clean-up of ``collision.find_contacts``.
 
 The tests are those the module docstring of ``collision`` states. Library sorts,
-``searchsorted`` and sets are avoided: each pulls seconds of generic code into the compile.
+``searchsorted`` and sets are avoided: each pulls generic code into the compile and
+lengthens it (``benchmarks/compile.py``).
 The kernels take a scratch arena first (``ar``, :mod:`feeder_sim._arena`).
 """
 
@@ -26,7 +27,8 @@ def _argsort(ar, keys):
     """Stable argsort: insertion-sorted runs of ``_RUN``, then bottom-up merges, a merge of two
     runs already in order being a copy (keys here are mostly in order already: pieces by x
     from one step to the next). Hand-written because ``np.argsort`` with a ``kind`` compiles
-    numba's generic sorts and string handling: seconds of compile time. Keys must not be NaN."""
+    numba's generic sorts and string handling, which lengthen the compile. Keys must not be
+    NaN."""
     n = keys.shape[0]
     idx = arange_i(ar, n)
     for lo in range(0, n, _RUN):

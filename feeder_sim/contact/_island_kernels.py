@@ -12,10 +12,10 @@ arithmetic where that code is the reference (``test/test_pile.py`` holds them to
 Each kernel takes a scratch arena first (``ar``, :mod:`feeder_sim._arena`): the compiled step
 passes its own, calls from Python ``heap_state()``, whose arrays are ordinary numpy ones.
 
-Compile time (``benchmarks/compile.py``): a cold time-stepping run compiles for some 45 s on
-a 2-core machine, later runs load machine code from the cache in ~0.5 s. The code avoids
-numba's library sorts, ``lstsq``, ``@`` and slice assignment, and is kept flat, for compile
-time.
+Compile time (measured by ``benchmarks/compile.py``): a cold time-stepping run compiles
+these kernels, later runs load their machine code from the cache. The code avoids numba's
+library sorts, ``lstsq``, ``@`` and slice assignment, and is kept flat, because each of them
+lengthens that first compile.
 """
 
 from __future__ import annotations
@@ -550,7 +550,7 @@ def feature_gaps_inline(ar, idx, vertex, edge, vertices, normals, vertex_body, p
     """Gaps of the vertex-edge features of contacts ``idx`` at another configuration:
     ``collision.evaluate_gaps`` (its gap) with the same arithmetic, so the same bits; ``cos`` /
     ``sin`` of the body angles are numpy's. Used by the position projection, which needs the
-    gaps of a few contacts, where evaluate_gaps' numpy calls cost ~70 us whatever their number."""
+    gaps of a few contacts: evaluate_gaps' numpy calls cost as much for a few as for many."""
     out = empty_f(ar, idx.shape[0])
     for q in range(idx.shape[0]):
         i = idx[q]
@@ -1187,9 +1187,9 @@ def solve_pgs(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv
     """:func:`_solve_pgs_in_order` with each selected island's contacts taken bottom-up, in
     order of ``height`` (along -gravity, any unit; ties keep their order): consecutive rows
     then mostly belong to parts side by side rather than to one body, whose velocity each
-    row must wait for, and a sweep of a settled pile costs 8-30 % less for about as many
-    sweeps. The arguments are those of ``_solve_pgs_in_order`` in the caller's order;
-    ``x_n``, ``x_t`` and ``w_t`` are written back in it."""
+    row must wait for, and a sweep of a settled pile costs less while about as many sweeps
+    are needed (``benchmarks/pile.py``). The arguments are those of ``_solve_pgs_in_order``
+    in the caller's order; ``x_n``, ``x_t`` and ``w_t`` are written back in it."""
     c = a.shape[0]
     perm = arange_i(ar, c)
     for isl in range(starts.shape[0] - 1):

@@ -40,8 +40,9 @@ Pipeline of :func:`find_contacts`
 
 Steps 2-4 run in numba kernels (``_collision_kernels.narrow_phase``, ``clean_contacts``);
 their sweep finds the pairs of :func:`candidate_pairs`, the vectorised broad phase kept here
-for callers that want the pairs alone. The kernels take ~0.05 ms per call for one box on a
-track, where the numpy pipeline they replaced cost ~0.6 ms, mostly fixed numpy overhead.
+for callers that want the pairs alone. They are compiled because a scene of few pieces, such
+as one box on a track, gives a search little work: vectorised in numpy, its cost would be
+mostly numpy's fixed cost per call (``benchmarks/conveying.py`` runs such a scene).
 
 Compound bodies (concave parts, segmented tracks)
 -------------------------------------------------

@@ -50,10 +50,6 @@ topics other than the feeder_sim ones are otherwise ignored. Metadata values are
 (:data:`~feeder_sim.model.scene.MAX_FILE_BYTES`, nesting) and to a budget for the scene
 parser's checks before it is parsed, and a scene beyond them is ignored with a warning (parts
 drawn as origins). An output that exists and is not a regular file is refused.
-
-Conversion time (2-core machine): a 10-part, 100 Hz, 10 s log (4 000 messages) about 0.2
-s, plus about 1 s of imports from the command line; a synthetic 50-part, 100 Hz, 60 s log (24 000
-messages, 15 MB) about 1.7 s.
 """
 
 from __future__ import annotations
@@ -614,10 +610,11 @@ def _seconds(t_ns: int) -> str:
     return f'{t_ns / 1e9:.3f}'
 
 
-# The scene parser checks each distinct outline in O(n^2) time (0.7 s for one of
-# MAX_POLYGON_VERTICES vertices on the 2-core machine) and each body against the others (0.7 s
-# for a thousand); within MAX_FILE_BYTES a log's scene_json could ask for minutes of that. A
-# replay takes a scene whose checks fit in about two seconds; beyond, it draws part origins.
+# The scene parser checks each distinct outline in O(n^2) time and each body against the
+# others; within MAX_FILE_BYTES a log's scene_json could ask for far more of that than a replay
+# should spend before it draws anything. A replay takes a scene whose checks are no more than
+# those of two outlines of MAX_POLYGON_VERTICES vertices and of a thousand bodies; beyond, it
+# draws part origins.
 _SCENE_VERTEX_PAIRS = 2 * MAX_POLYGON_VERTICES ** 2
 _SCENE_BODIES = 1000
 
@@ -1069,7 +1066,7 @@ def part_size(scene: Scene | None) -> float:
 
 # Up to this many vertices the diameter is the largest of all pairwise distances; beyond, the
 # largest extent over this many directions (a relative error below 1e-6), so that a body of
-# many large pieces costs milliseconds and no quadratic memory.
+# many large pieces costs time linear in its vertices and no quadratic memory.
 _DIAMETER_PAIRS_UP_TO = 2000
 
 

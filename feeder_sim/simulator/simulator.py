@@ -47,7 +47,7 @@ def _plain(x: object) -> object:
     """A numpy scalar as the Python float it stands for; anything else as it is.
 
     A float32 would make ``t`` a float32 (NumPy 2 keeps the narrower type of a Python float
-    and a numpy scalar), so every kernel compiled anew, for a minute, and the time drifted
+    and a numpy scalar), so every kernel would compile anew and the time would drift
     (0.01 + np.float32(0.01) is 0.0199999995): it is read as the decimal it prints as."""
     if isinstance(x, np.floating) and x.dtype.itemsize < 8:
         return float(str(x))
@@ -212,18 +212,19 @@ class Simulator:
     def _check_state(self) -> None:
         """Refuse, with the field and the fix, a state a caller changed into one no stepper can
         take: its time not a finite number or beyond the round-off of a step, an array replaced
-        by one of another type, shape or memory layout (compiled steppers would compile anew for
-        a minute, or read the array as float64 of the world's size in C order: wrong bodies,
-        wrong memory), or a part's value set to one a scene file could not hold (NaN, infinite,
-        beyond the bounds of model/scene/specs.py: a run on from there gives NaN poses or numbers
-        of 1e298 m).
+        by one of another type, shape or memory layout (compiled steppers would compile anew,
+        as on a cold cache, or read the array as float64 of the world's size in C order: wrong
+        bodies, wrong memory), or a part's value set to one a scene file could not hold (NaN,
+        infinite, beyond the bounds of model/scene/specs.py: a run on from there gives NaN
+        poses or numbers of 1e298 m).
 
         Values are checked where they differ from what the last advance left (its bytes are
         kept): the simulation's own numbers may leave the bounds (a part that fell off a track
-        falls on) and are the stepper's, not a caller's. Unchanged, this and ``_trust_state``
-        cost 2.7 us per advance on a 10-part scene (track_ten_boxes: ``timeit`` of the two
-        calls, best of 7 x 1e5, on a 2-core machine under a load of 3.6), under the 5 us
-        allowed; the arrays' types are checked only when they are not the ones checked last."""
+        falls on) and are the stepper's, not a caller's. When nothing changed, this and
+        ``_trust_state`` only take and compare the arrays' bytes, little beside even a short
+        frame's steps (``benchmarks/throughput.py``'s one-part case in 1 ms frames, where each
+        call counts); the arrays' types are checked only when they are not the ones checked
+        last."""
         s = self.state
         if type(s.t) is not float:
             s.t = _plain(s.t)

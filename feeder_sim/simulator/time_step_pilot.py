@@ -23,7 +23,7 @@ log = logging.getLogger('feeder_sim')
 # AUTO_WARMUP_PERIODS (the parts' start-up is not what the step must resolve, and a part that
 # slides back and forth without sticking builds its step's error up over some ten periods:
 # after 5, three steps agreed to 0.3 % on a speed 6.8 % off in its steady state), and at most
-# AUTO_MAX_HALVINGS halvings are tried (50 -> 12 800 steps per period)
+# AUTO_MAX_HALVINGS halvings are tried (from 50 to 12 800 steps per period)
 AUTO_WARMUP_PERIODS = 20
 AUTO_MEASURE_PERIODS = 10
 AUTO_MAX_HALVINGS = 8

@@ -427,12 +427,12 @@ def run_trials(spec: StudySpec, out: Path, *, scheduler: str | None = None,
                  len(client.scheduler_info()['workers']), client.scheduler.address,
                  time.perf_counter() - start)
         # A few trials in flight beyond one per worker, one handed out when one comes back.
-        # Submitted all at once, they were split evenly up front and a worker whose trials
-        # ran short sat idle at the end (2.5 s of 7 on 16 one-second trials). Exactly one
-        # per worker left each worker idle for the round trip of a result to the client and
-        # of the next trial back (5-7 % of a one-second trial on 2 workers). One spare trial,
-        # and one more per 8 workers, waits where the next free worker takes it (1-2 % on 2
-        # workers); two spares on 2 workers stranded work at the end again (7 %).
+        # Submitted all at once, they would be split evenly up front, and a worker whose
+        # trials ran short would sit idle at the end. With exactly one per worker, each
+        # worker would sit idle for the round trip of a result to the client and of the next
+        # trial back. One spare trial, and one more per 8 workers, waits where the next free
+        # worker takes it; more spares strand work at the end again (two on 2 workers do).
+        # benchmarks/study.py measures the overhead per trial that is left.
         pending = iter(todo)
         futures: dict = {}
         in_flight = as_completed()

@@ -446,8 +446,8 @@ def check_designs(spec: StudySpec) -> None:
     """Each value of each parameter must give a valid scene (the others at the first
     design's values) that runs ``duration`` within the step limit; a sampled parameter, a
     range and a long list are checked at their two ends (a scene checks its numbers against
-    intervals; 100 000 draws checked one by one took minutes); errors name the study
-    parameter and the value."""
+    intervals, so the ends stand for the values between; checking each of 100 000 draws
+    would build 100 000 scenes); errors name the study parameter and the value."""
     base, source = base_scene(spec)
     first = spec.first_design()
     checks = [(p.name, v) for p in spec.parameters for v in p.checked_values()]

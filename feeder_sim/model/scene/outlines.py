@@ -45,7 +45,8 @@ def _outline_key(v: np.ndarray) -> bytes:
 
 
 # The geometry of an outline is checked and decomposed once per distinct outline: a scene of
-# a thousand identical parts took 2 ms per part doing it again for each.
+# a thousand identical parts would otherwise check and decompose the same outline a thousand
+# times.
 @functools.lru_cache(maxsize=1024)
 def _outline_problem(key: bytes, noun: str) -> str | None:
     """What is wrong with the outline whose float64 (x, y) vertices are ``key``, or None."""

@@ -71,7 +71,7 @@ def within_bounds(pose: np.ndarray, velocity: np.ndarray) -> bool:
                 and np.all(np.abs(velocity) <= VELOCITY_BOUNDS))
 
 
-# What the loader reads: checking a polygon costs O(n^2) time and memory (100 MB, 1 s at 1000
+# What the loader reads: checking a polygon costs O(n^2) time and memory (100 MB at 1000
 # vertices); a scene file of thousands of parts is well under a megabyte.
 MAX_POLYGON_VERTICES = 1000
 MAX_PIECES = 200

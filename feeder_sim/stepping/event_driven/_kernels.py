@@ -17,8 +17,8 @@
 * Integrated phases: the held mode's right-hand side, event functions and forces
   (``mode_rhs``) and Dormand–Prince 5(4) steps (``dopri_step``).
 
-All kernels are compiled with ``cache=True``: the first run on a machine compiles them (about
-half a minute, once); later runs load the cached machine code.
+All kernels are compiled with ``cache=True``: the first run on a machine compiles them, once
+(``benchmarks/compile.py`` measures it); later runs load the cached machine code.
 """
 
 from __future__ import annotations

@@ -63,7 +63,7 @@ class EventSettings(CheckedSettings):
     max_events_again: int = 5
     # One dynamic body: follow its closed-form phases through the events its own contacts
     # resolve in compiled code (:mod:`._chain`); False takes each event through the general
-    # path (the same answers to round-off, several times slower).
+    # path (the same answers to round-off, with a return to Python at every event).
     chained: bool = True
 
 

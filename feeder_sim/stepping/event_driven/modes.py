@@ -482,8 +482,9 @@ class ContactModes:
             if res <= tol:
                 self.stats.record(lcp.LCPResult(x, w, 'active set', 0, 0, res, True, ''))
                 return f, True, ''
-        # The compiled Dantzig takes lcp.solve's pivots ~100x faster; an answer that misses
-        # the tolerance goes to lcp.solve and its fallback ladder, as in time_stepping.
+        # The compiled Dantzig takes lcp.solve's pivots without its Python bookkeeping, which
+        # would dominate an event's cost; an answer that misses the tolerance goes to
+        # lcp.solve and its fallback ladder, as in time_stepping.
         f, x, w, res, pivots, codes, (A, P, b, normal_of, lo, hi) = kern.lcp_dantzig(
             W, b_full, friction, mu_lo, mu_hi, slave)
         if res <= tol:

@@ -64,8 +64,8 @@ Choices, with their reasons:
   cycles, 8-32 steps per period) the mean speed is off the exact point mass by +4.2 % at
   1 um (v_b 4.4 mm/s), +1.5...+2.3 % at 0.2 um, +0.4...+1.2 % at 50 nm and -0.1...+0.6 % at
   10 nm (v_b 0.44 mm/s); the spread is the chaotic order of micro-collisions. Collisions per
-  second grow as ``eps^-1/2``: 10 nm costs ~0.1 s of wall time per simulated second for one
-  part.
+  second, and with them the cost of a simulated second, grow as ``eps^-1/2``
+  (``benchmarks/methods.py`` times one part at the default envelope).
 * ``penetration_m`` = half the envelope: the floor the time-of-impact search keeps every gap
   above; the resting part's worst sink.
 * ``bounce_speed_mps`` = ``sqrt(2 |g| eps)`` (0.44 mm/s): bounce back to the envelope.

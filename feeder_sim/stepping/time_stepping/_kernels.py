@@ -16,18 +16,18 @@ with restitution are stepped here too: the velocities a speculative row held bac
 
 The step, its contact search and its solve are compiled into ``advance`` itself (LLVM
 inlining, ``machine_inline``) rather than called: a call between kernels hands over every
-array of its arguments (the step's are some 80) and clears the callee's local array slots,
-which together took more than half of a free part's step (1.3 -> 0.6 us) and a sixth of
-one part conveying at dt = 1e-4 (``benchmarks/throughput.py``: 3.7 -> 3.1 us per step).
-The price is a longer first compile of ``time_stepping`` (``benchmarks/compile.py``: 49 ->
-83 s on a 2-core machine); the default run (``event_driven``) does not compile this module.
+array of its arguments (the step's are some 80) and clears the callee's local array slots.
+Called, the kernels would spend more than half of a free part's step on that, and a
+sizeable share of one part's conveying at dt = 1e-4 (``benchmarks/throughput.py``).
+The price is a longer first compile of ``time_stepping`` (``benchmarks/compile.py``); the
+default run (``event_driven``) does not compile this module.
 
 The kernels of the contact layer the step calls (``narrow_phase``, ``contact_rows``,
 ``solve_small``, ...) it calls through their ``_inline`` twins, the same code that LLVM
-always inlines; Python callers keep the ``jit`` entry points. LLVM inlined the ``jit`` ones
-too, but only when they were compiled for this step: when the Python reference had compiled
-them first (the test suite, a reference step), the step was linked against them as calls and
-ran 5-8 % slower, from the same source, depending on which process filled the cache.
+always inlines; Python callers keep the ``jit`` entry points. LLVM inlines the ``jit`` ones
+only when they are compiled for this step: where the Python reference has compiled them
+first (the test suite, a reference step), the step is linked against them as calls, and the
+speed of the same source would depend on which process filled the cache.
 """
 
 from __future__ import annotations

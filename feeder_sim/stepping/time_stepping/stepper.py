@@ -55,35 +55,38 @@ island's problem is the ``dynamics.assemble`` layout (normals, then the friction
   ``lcp.residual`` scale: ``_lcp_kernels.dantzig``, a numba port of ``lcp``'s Dantzig pass (same
   sets, events, tie-breaking, cycling/fold handling, normals-first retry and polish; it takes the
   same pivots as ``lcp.solve`` on the problems checked, and the single box on a vibrating track
-  gives the same conveying speed to the last bit). It is 40-100x faster than ``lcp.solve`` in
-  Python (4 rows: 0.5 ms -> ~5 us; 30-38 rows: 1.5-5 ms -> 35-150 us). If its answer misses
-  ``lcp_tol`` the island is solved again by the reference path (``solve_impulses``: ``lcp.solve``
-  and its Lemke / PGS / frictionless ladder) and counted in ``stats.fallbacks``. An island
+  gives the same conveying speed to the last bit). Compiled, it spares every pivot the Python
+  bookkeeping of ``lcp.solve``, which would outweigh the rest of a small island's step
+  (measured by ``benchmarks/throughput.py``). If its answer misses ``lcp_tol`` the island
+  is solved again by the reference path (``solve_impulses``: ``lcp.solve`` and its Lemke /
+  PGS / frictionless ladder) and counted in ``stats.fallbacks``. An island
   whose contacts all ended the step before in known row states is first solved in those
   states in one piece (``_lcp_kernels.solve_with_states``, the Dantzig pass's final polish;
   ``reuse_row_states``) and that answer is taken if its ``lcp.residual`` is <= 1e-12: a part
   resting or sliding as it did costs one small solve instead of its pivots (one part
-  conveying at dt = 1e-4: 2.0 -> 0.4 pivots per step). The position projection's islands
-  (normal rows only) likewise start from the row states their contacts ended their last
-  projection in (one part hopping at dt = 1e-4: 0.43 -> 0.04 pivots per step in all). It
-  is an answer of the same LCP; where the LCP has one, Dantzig's to round-off;
+  conveying at dt = 1e-4: about 0.4 pivots per step instead of 2). The position projection's
+  islands (normal rows only) likewise start from the row states their contacts ended their
+  last projection in (one part hopping at dt = 1e-4: 0.04 pivots per step in all instead of
+  0.43). It is an answer of the same LCP; where the LCP has one, Dantzig's to round-off;
 * larger islands (piles): projected Gauss-Seidel in velocity form
   (``_island_kernels.solve_pgs``, SOR factor ``pgs_omega``), warm-started with the previous
   step's impulses of the same vertex-edge features, each normal followed by its friction row, an
   island's contacts bottom-up (by height along gravity: consecutive rows then mostly belong to
-  parts side by side, not to one body whose new velocity each must wait for; 4-7 % less wall
-  time for converged piles, 4 % more at 10 sweeps, where sorting is a larger share), and every
+  parts side by side, not to one body whose new velocity each must wait for; the sort pays
+  for itself in piles solved to the tolerance, not in those stopped at 10 sweeps, of whose
+  solve it is a larger share: ``benchmarks/throughput.py`` runs both), and every
   ``pgs_check`` sweeps a step of Silcowitz, Niebe and Erleben's nonsmooth nonlinear conjugate
   gradient (``pgs_momentum``; Silcowitz-Hansen, Niebe, Erleben, "A nonsmooth nonlinear conjugate
   gradient method for interactive contact force problems", The Visual Computer 26, 2010): the
   impulses move on along the previous direction, scaled by the ratio of the last two sweeps'
-  squared changes, and are projected back into their bounds. It takes the 200-part pile of the
-  throughput benchmark from 62 to 39 sweeps per solve, islands of a 1000-part one from 740-1 100
-  to 360-510, and cuts the sweeps to a tight tolerance (1e-8 m/s) five- to tenfold. Pivoting
-  does not scale: every pivot solves the clamped system, so a pile's 1 070-row island took 1 250
-  pivots and 5-7 s in the numba Dantzig, against 1.2-1.5 ms for PGS to 1e-3 m/s. Above ~50 rows
-  one Dantzig solve already costs more than a whole step of the pile benchmark. PGS stops when
-  its velocity residual, the largest velocity change one more sweep would make (``A_ii |x_i -
+  squared changes, and are projected back into their bounds. With these steps the 200-part
+  pile of ``benchmarks/throughput.py`` needs about 39 sweeps per solve instead of 62, the
+  islands of its 1000-part pile 360-510 instead of 740-1 100, and a tight tolerance (1e-8 m/s)
+  five to ten times fewer sweeps. Pivoting does not scale: every pivot solves the clamped
+  system, so a 1 070-row island of a pile needs 1 250 pivots, each a solve of up to that
+  many rows, where a PGS sweep is one pass over them. Above ~50 rows one Dantzig solve
+  already costs more than a whole step of ``benchmarks/pile.py``. PGS stops when its
+  velocity residual, the largest velocity change one more sweep would make (``A_ii |x_i -
   proj(x_i - w_i / A_ii)|``, m/s), is <= ``pgs_tol_mps``, or after ``pgs_max_sweeps``; an island
   that ends above the tolerance counts as unconverged. The ``lcp.residual`` of every PGS answer
   is recorded too (``stats.max_residual``); it is not the stopping test because it scales with
@@ -322,9 +325,10 @@ class _Warm:
 
 
 # Gathering rows of (k, 2) arrays by an index array: ``ndarray.take(i, axis=0)`` copies the same
-# values ~10x faster than ``a[i]`` (numpy's fancy indexing walks a 2-element subspace per row),
-# and ``compress`` / ``np.add(..., where=)`` likewise beat boolean and fancy indexing. With
-# hundreds of contacts and ~40 such arrays per step this is a tenth of a pile step.
+# values as ``a[i]`` with far less work per row (numpy's fancy indexing walks a 2-element
+# subspace per row), and ``compress`` / ``np.add(..., where=)`` likewise do less than boolean
+# and fancy indexing. A pile step gathers ~40 such arrays of hundreds of contacts, so the way of
+# indexing shows in its cost.
 
 
 def cap_moves(move: np.ndarray, radius_m: np.ndarray, limit_m) -> np.ndarray:
@@ -363,9 +367,10 @@ class _IslandGeometry:
 
 class _KernelCall:
     """A compiled kernel called through the machine code of the overload its previous call
-    took. numba's dispatch types every argument in Python before each call, some 15 us for the
-    80-odd arrays ``_kernels.advance`` takes (of 25 us a call costs; a node at
-    100 frames per second calls it 100 times per simulated second, a control loop 1000). The
+    took. numba's dispatch types every argument in Python before each call, and for the
+    80-odd arrays ``_kernels.advance`` takes that is most of what a call costs beyond its
+    steps; a node at 100 frames per second pays it 100 times per simulated second, a control
+    loop 1000 (``benchmarks/throughput.py``'s one-part cases at 10 ms and 1 ms frames). The
     entry point unboxes the same arguments without looking at their types, so it is only
     taken while they cannot have changed: every argument but the ``watched`` ones is made by
     the stepper with fixed types (times as floats, whatever number a caller gave), and the
