@@ -17,7 +17,7 @@ from typing import ClassVar, Protocol
 import numpy as np
 
 from feeder_sim.contact.dynamics import ContactSet, SolverStats
-from feeder_sim.model.scene import Scene, SolverSpec, StepRule
+from feeder_sim.model.scene import Scene, SolverSpec, STEP_RULES, StepRule
 from feeder_sim.model.world import State, World
 
 
@@ -134,7 +134,7 @@ class StepperBase:
     needs from them in ``prepare``."""
 
     settings_type: type
-    # the policy (see Stepper)
+    # the policy (see Stepper); step_rule is the scene's STEP_RULES[name]
     name: ClassVar[str]
     step_rule: ClassVar[StepRule]
     fixed_steps: ClassVar[bool]
@@ -143,6 +143,10 @@ class StepperBase:
     # Called with the state and the contacts reported since the previous call at every event a
     # method locates (event_driven); the energy check of :mod:`feeder_sim.simulator` uses it.
     after_event: Callable[[State, list[StepContacts]], None] | None = None
+
+    def __init_subclass__(cls, **kwargs) -> None:
+        super().__init_subclass__(**kwargs)
+        cls.step_rule = STEP_RULES[cls.name]
 
     def __init__(self, world: World, spec: SolverSpec, stats: SolverStats,
                  settings: object | None = None) -> None:

@@ -101,7 +101,6 @@ import math
 
 import numpy as np
 
-from feeder_sim.model.scene import STEP_RULES
 from feeder_sim.model.world import State
 from feeder_sim.stepping.event_driven import _kernels as kern
 from feeder_sim.stepping.event_driven import phases
@@ -131,7 +130,6 @@ class EventDriven(StepperBase):
 
     settings_type = EventSettings
     name = 'event_driven'
-    step_rule = STEP_RULES[name]
     fixed_steps = False
     error_setting = 'tolerance'
     order = None          # its error is no known power of its tolerance

@@ -113,7 +113,6 @@ from feeder_sim.contact.candidates import corner_piece_candidates
 from feeder_sim.contact.collision import Contacts
 from feeder_sim.contact.dynamics import contact_set, MAX_MESSAGES
 from feeder_sim.contact.routh import collide, CollisionResult, LAWS
-from feeder_sim.model.scene import STEP_RULES
 from feeder_sim.model.world import DRIVEN, FIXED, MOVING, State
 from feeder_sim.stepping.impulse_based._kernels import (
     C_COLLISIONS,
@@ -181,7 +180,6 @@ class ImpulseBased(StepperBase):
 
     settings_type = ImpulseSettings
     name = 'impulse_based'
-    step_rule = STEP_RULES[name]
     fixed_steps = True
     error_setting = 'time_step'
     order = None          # its steps adapt below time_step: no known power of it

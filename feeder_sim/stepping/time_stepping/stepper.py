@@ -154,7 +154,6 @@ from feeder_sim.contact.dynamics import (
     second_pass,
     SolverStats,
 )
-from feeder_sim.model.scene import STEP_RULES
 from feeder_sim.model.world import State, World
 from feeder_sim.stepping.protocol import CheckedSettings, StepContacts, StepperBase
 from feeder_sim.stepping.time_stepping import _kernels as TK
@@ -410,7 +409,6 @@ class TimeStepper(StepperBase):
 
     settings_type = TimeStepSettings
     name = 'time_stepping'
-    step_rule = STEP_RULES[name]
     fixed_steps = True
     error_setting = 'time_step'
     order = 1             # Moreau's midpoint step: first order in the step
