@@ -33,8 +33,8 @@ import time
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from feeder_sim._compile_ahead import HELPER_ENV_VAR  # noqa: E402
-from feeder_sim._jit import DEFER_ENV_VAR, INLINE_ENV_VAR  # noqa: E402
+from feeder_sim.compiled.ahead import HELPER_ENV_VAR  # noqa: E402
+from feeder_sim.compiled.jit import DEFER_ENV_VAR, INLINE_ENV_VAR  # noqa: E402
 
 METHODS = ('event_driven', 'time_stepping', 'impulse_based')
 MODES = {'shipped': {HELPER_ENV_VAR: '1', DEFER_ENV_VAR: '1', INLINE_ENV_VAR: '1'},

@@ -162,21 +162,22 @@ def _compile(args: argparse.Namespace) -> int:
     import tempfile
     import time
 
-    from feeder_sim import _jit
+    from feeder_sim.compiled.cache import key_dir
+    from feeder_sim.compiled.jit import kernel_load_seconds
     from feeder_sim.model.scene import METHODS
     from feeder_sim.run import run
     from feeder_sim.simulator import Simulator
 
     for scene in args.scenes:
         for method in args.method or METHODS:
-            t0, loading0 = time.perf_counter(), _jit.kernel_load_seconds()
+            t0, loading0 = time.perf_counter(), kernel_load_seconds()
             # a run as `run` and the node make it, frames recorded: their kernels too
             with tempfile.TemporaryDirectory() as scratch:
                 run(Simulator(scene, method=method), args.duration,
                     record=Path(scratch) / 'frames.mcap')
-            print(f'{scene} {method}: {_jit.kernel_load_seconds() - loading0:.1f} s compiling '
+            print(f'{scene} {method}: {kernel_load_seconds() - loading0:.1f} s compiling '
                   f'or loading kernels, {time.perf_counter() - t0:.1f} s in all', flush=True)
-    print(f'cached in {_jit.key_dir()}')
+    print(f'cached in {key_dir()}')
     return 0
 
 

@@ -1,9 +1,9 @@
-"""Record what a first run compiles, as the helper's plan (``feeder_sim/_compile_plans``).
+"""Record what a first run compiles, as the helper's plan (``feeder_sim/compiled/plans``).
 
 Each method's plan comes from a fresh process on an empty kernel cache running
 ``feeder-sim run track_one_box --duration 0.1 --method M`` (the default scene) with the helper
 off; it lists every kernel compiled, with its signature, own compile time and callees (see
-``feeder_sim._compile_ahead``). A method whose first compile a helper would not shorten by a
+``feeder_sim.compiled.ahead``). A method whose first compile a helper would not shorten by a
 fifth gets no plan. Record again after changing kernels' signatures;
 ``test_compile_ahead.py`` says when a plan has gone stale::
 
@@ -26,14 +26,14 @@ WORTH = 0.8
 
 
 def record_in_this_process(method: str, out: Path) -> None:
-    from feeder_sim import _compile_ahead
     from feeder_sim.cli import main
+    from feeder_sim.compiled import ahead
 
-    with _compile_ahead.record() as records:
+    with ahead.record() as records:
         status = main(['run', 'track_one_box', '--duration', '0.1', '--method', method])
     if status:
         sys.exit(f'feeder-sim run --method {method} failed ({status})')
-    plan = _compile_ahead.encode_plan(records)
+    plan = ahead.encode_plan(records)
     print(f'{method}: {len(plan["items"])} kernels, {plan["alone_s"]} s alone, '
           f'{plan["with_helper_s"]} s with the helper (simulated)', flush=True)
     if plan['with_helper_s'] > WORTH * plan['alone_s']:
@@ -53,7 +53,7 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as cache:
             env = {k: v for k, v in os.environ.items() if not k.startswith('NUMBA_')}
             env.update(FEEDER_SIM_CACHE_DIR=cache, FEEDER_SIM_COMPILE_HELPER='0')
-            out = ROOT / 'feeder_sim' / '_compile_plans' / f'{method}.json'
+            out = ROOT / 'feeder_sim' / 'compiled' / 'plans' / f'{method}.json'
             print(f'recording {method} on a cold cache (a minute or two) ...', flush=True)
             subprocess.run([sys.executable, __file__, '--record', method, str(out)], cwd=ROOT,
                            env=env, check=True)

@@ -15,6 +15,9 @@ with another signature, the cases are compared to round-off instead
 
     python test/fingerprint.py --write test/data/fingerprint.json   # record
     python test/fingerprint.py --check test/data/fingerprint.json   # compare, exit 1 on change
+
+``--method M`` (repeatable) takes that method's cases only: ``--check`` compares those,
+``--write`` replaces those in the file and keeps the others.
 """
 
 from __future__ import annotations
@@ -150,9 +153,10 @@ SLOW = {('orienter_hook', 'impulse_based'), ('orienter_hook_short', 'impulse_bas
         ('orienter_partition', 'impulse_based')}
 
 
-def cases() -> list[tuple[str, str]]:
+def cases(methods: tuple[str, ...] | list[str] = METHODS) -> list[tuple[str, str]]:
+    """(scene, method) of every case of ``methods``."""
     return [(scene, method) for scene in DURATIONS for method in METHODS
-            if (scene, method) not in SLOW]
+            if method in methods and (scene, method) not in SLOW]
 
 
 def run_all(selected: list[tuple[str, str]] | None = None, verbose: bool = True) -> dict:
@@ -170,14 +174,25 @@ def main(argv: list[str] | None = None) -> int:
     group = ap.add_mutually_exclusive_group(required=True)
     group.add_argument('--write', type=Path)
     group.add_argument('--check', type=Path)
+    ap.add_argument('--method', action='append', choices=METHODS,
+                    help="this method's cases only (repeatable; default: all)")
     args = ap.parse_args(argv)
-    got = run_all()
+    got = run_all(cases(args.method or METHODS))
     if args.write:
+        if args.method and args.write.exists():
+            kept = json.loads(args.write.read_text())
+            if kept.get(PLATFORM_KEY) != platform_signature():
+                print('the file was recorded on a machine that rounds differently: write all '
+                      'of it (no --method)', file=sys.stderr)
+                return 2
+            got = {**kept, **got}
         got[PLATFORM_KEY] = platform_signature()
         args.write.write_text(json.dumps(got, indent=1, sort_keys=True) + '\n')
         return 0
     want = json.loads(args.check.read_text())
     exact = want.pop(PLATFORM_KEY, None) == platform_signature()
+    if args.method:
+        want = {k: v for k, v in want.items() if k.rpartition('/')[2] in args.method}
     if not exact:
         print('recorded on a machine that rounds differently: comparing to round-off')
     bad = 0

@@ -1,4 +1,4 @@
-"""The compiled step's scratch (``feeder_sim._arena``): what an arena hands out, where it
+"""The compiled step's scratch (``feeder_sim.compiled.arena``): what an arena hands out, where it
 falls short, and what it gives back."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from feeder_sim._arena import (
+from feeder_sim.compiled.arena import (
     BLOCKS,
     borrow,
     empty_f,

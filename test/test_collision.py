@@ -734,7 +734,7 @@ def test_compiled_argsort_is_numpys_stable_argsort():
     # already in order) gives numpy's stable permutation: ties keep their order.
     import numba
 
-    from feeder_sim._arena import heap_arena
+    from feeder_sim.compiled.arena import heap_arena
     from feeder_sim.contact._collision_kernels import _argsort
 
     @numba.njit
@@ -758,7 +758,7 @@ def test_the_integer_keys_radix_sort_is_numpys_stable_argsort():
     # digit every key shares (its pass skipped), sorted and reversed input, one negative key.
     import numba
 
-    from feeder_sim._arena import borrow, heap_arena, new_arena, release
+    from feeder_sim.compiled.arena import borrow, heap_arena, new_arena, release
     from feeder_sim.contact._collision_kernels import _argsort_int
 
     @numba.njit

@@ -18,14 +18,14 @@ import time
 import pytest
 from test_kernel_cache import copy_package, NOTICE, probe_env, run
 
-from feeder_sim import _compile_ahead
+from feeder_sim.compiled import ahead
 from feeder_sim.run import run as run_scene
 from feeder_sim.simulator import Simulator
 
 PROBE = 'feeder_sim._probe.caller:probe'
 
 OTHER = '''
-from feeder_sim._jit import jit
+from feeder_sim.compiled.jit import jit
 
 
 @jit
@@ -36,9 +36,9 @@ def ping(x):
 # holds the probe's lock, compiles it when told, reports what it compiled
 HOLDER = f'''
 import json, sys
-from feeder_sim import _compile_ahead
+from feeder_sim.compiled import ahead
 from feeder_sim._probe.caller import probe
-with _compile_ahead.kernel_lock({PROBE!r}):
+with ahead.kernel_lock({PROBE!r}):
     print('locked', flush=True)
     sys.stdin.readline()
     value = probe(3.0)
@@ -47,34 +47,35 @@ print(json.dumps({{'value': value, 'misses': sum(probe.stats.cache_misses.values
 
 ASKER = '''
 import json, time
-from feeder_sim import _jit
 from feeder_sim._probe.caller import probe
+from feeder_sim.compiled.jit import kernel_load_seconds
 print('asking', flush=True)
 t0 = time.monotonic()
 value = probe(3.0)
 print(json.dumps({'value': value, 'hits': sum(probe.stats.cache_hits.values()),
                   'misses': sum(probe.stats.cache_misses.values()),
-                  'first_call_s': time.monotonic() - t0, 'load_s': _jit.kernel_load_seconds()}))
+                  'first_call_s': time.monotonic() - t0, 'load_s': kernel_load_seconds()}))
 '''
 
 RECORD = '''
 import json
-from feeder_sim import _compile_ahead
+from feeder_sim.compiled import ahead
 from feeder_sim._probe.caller import probe
-with _compile_ahead.record() as records:
+with ahead.record() as records:
     probe(3.0)
-print(json.dumps(_compile_ahead.encode_plan(records)))
+print(json.dumps(ahead.encode_plan(records)))
 '''
 
 # starts the helper of plan 'probe' by a first compile, waits for it, then runs the probe
 HELPED = '''
 import json, sys
-from feeder_sim import _compile_ahead, _jit
+from feeder_sim.compiled import ahead
+from feeder_sim.compiled import jit as compiled_jit
 from feeder_sim._probe.other import ping
 from feeder_sim._probe.caller import probe
-_jit.expect('probe')
+compiled_jit.expect('probe')
 ping(1)
-helper = _compile_ahead._helper['process']
+helper = ahead._helper['process']
 print(json.dumps({'pid': helper.pid}), flush=True)
 if sys.argv[-1] == 'wait':
     helper.wait(timeout=60)
@@ -107,13 +108,13 @@ def test_simulated_wall_time_of_a_hand_worked_schedule():
     # items 0 and 1 take 4 s each, item 2 (2 s) calls both. Alone: 10 s. The helper on
     # {1, 2}: it does 1 in [0, 4] while the run does 0; then 2 in [4, 6]; the run waits: 6 s.
     costs, deps = [4.0, 4.0, 2.0], [[], [], [0, 1]]
-    assert _compile_ahead.simulate(costs, deps, {1, 2}, helper_start_s=0.0) == 6.0
+    assert ahead.simulate(costs, deps, {1, 2}, helper_start_s=0.0) == 6.0
     # {2} alone: the helper waits for the run's 0 and 1 (8 s), then 2: no gain
-    assert _compile_ahead.simulate(costs, deps, {2}, helper_start_s=0.0) == 10.0
+    assert ahead.simulate(costs, deps, {2}, helper_start_s=0.0) == 10.0
     # a helper starting 1 s late: 1 in [1, 5], 2 in [5, 7]
-    assert _compile_ahead.simulate(costs, deps, {1, 2}, helper_start_s=1.0) == 7.0
+    assert ahead.simulate(costs, deps, {1, 2}, helper_start_s=1.0) == 7.0
     items = [{'cost_s': c, 'deps': d} for c, d in zip(costs, deps, strict=True)]
-    assert _compile_ahead.helper_share(items, helper_start_s=0.0) == ([1, 2], 6.0)
+    assert ahead.helper_share(items, helper_start_s=0.0) == ([1, 2], 6.0)
 
 
 def test_a_kernel_two_processes_ask_for_is_compiled_once(tmp_path):
@@ -153,7 +154,7 @@ def write_plan(tree: Path, cache: Path, helper: list[int] | None) -> dict:
     assert plan['items'][0]['signature'] == ['float64']
     if helper is not None:
         plan['helper'] = helper
-    folder = tree / 'feeder_sim' / '_compile_plans'
+    folder = tree / 'feeder_sim' / 'compiled' / 'plans'
     folder.mkdir(exist_ok=True)
     (folder / 'probe.json').write_text(json.dumps(plan))
     (tree / 'feeder_sim' / '_probe' / 'other.py').write_text(OTHER)
@@ -199,27 +200,27 @@ def test_the_helper_ends_with_its_run(tmp_path, how):
 
 
 def test_no_helper_when_switched_off_or_without_a_plan(monkeypatch):
-    monkeypatch.setattr(_compile_ahead, '_helper', {'process': None})
-    monkeypatch.setenv(_compile_ahead.HELPER_ENV_VAR, '0')
-    assert not _compile_ahead.start_helper('event_driven')
-    monkeypatch.setenv(_compile_ahead.HELPER_ENV_VAR, '1')
-    assert not _compile_ahead.start_helper('no_such_method')
-    assert _compile_ahead._helper['process'] is None
+    monkeypatch.setattr(ahead, '_helper', {'process': None})
+    monkeypatch.setenv(ahead.HELPER_ENV_VAR, '0')
+    assert not ahead.start_helper('event_driven')
+    monkeypatch.setenv(ahead.HELPER_ENV_VAR, '1')
+    assert not ahead.start_helper('no_such_method')
+    assert ahead._helper['process'] is None
 
 
 def test_the_default_run_has_a_plan():
     # the issue's first-use target is the default run's; time_stepping's first compile is
     # mostly one kernel's (its whole step, one LLVM module): a helper would take 5 % off
-    assert sorted(p.stem for p in _compile_ahead.PLAN_DIR.glob('*.json')) == ['event_driven']
+    assert sorted(p.stem for p in ahead.PLAN_DIR.glob('*.json')) == ['event_driven']
 
 
-@pytest.mark.parametrize('method', sorted(p.stem for p in _compile_ahead.PLAN_DIR.glob('*.json')))
+@pytest.mark.parametrize('method', sorted(p.stem for p in ahead.PLAN_DIR.glob('*.json')))
 def test_each_shipped_plan_is_what_the_default_run_compiles(method):
-    plan = _compile_ahead.load_plan(method)
+    plan = ahead.load_plan(method)
     assert plan is not None, f'record it: python test/compile_plan.py {method}'
-    planned = {(it['kernel'], _compile_ahead._args(it)) for it in plan['items']}
+    planned = {(it['kernel'], ahead._args(it)) for it in plan['items']}
     # the run the plan was recorded from (test/compile_plan.py): the same kernels, in order
-    with _compile_ahead.record() as records:
+    with ahead.record() as records:
         run_scene(Simulator('track_one_box', method=method), 0.1)
     # what this process compiled or loaded (on a warm cache the kernels Python calls; their
     # callees come inside them) is planned ...
@@ -229,8 +230,8 @@ def test_each_shipped_plan_is_what_the_default_run_compiles(method):
     # ... and everything planned is in the cache for these sources: used by this run or one
     # before it (a kernel nobody asks for any more would be in no index)
     stale = [f'{item["kernel"]}{tuple(item["signature"])}' for item in plan['items']
-             if not _compile_ahead.cached(_compile_ahead._dispatcher(item),
-                                          _compile_ahead._args(item))]
+             if not ahead.cached(ahead._dispatcher(item),
+                                          ahead._args(item))]
     assert not stale, f'record again: python test/compile_plan.py {method}; stale: {stale}'
     # callees come first (the order compiles ended), so no one waits on a later kernel
     assert all(d < i for i, it in enumerate(plan['items']) for d in it['deps'])
@@ -247,9 +248,9 @@ def test_feeder_sim_compile_leaves_nothing_for_the_first_run(tmp_path):
         assert done.returncode == 0, done.stderr
         return done
 
-    ahead = cli('compile', '--method', 'impulse_based')
-    assert NOTICE in ahead.stderr
-    line = ahead.stdout.splitlines()[0]
+    compiled = cli('compile', '--method', 'impulse_based')
+    assert NOTICE in compiled.stderr
+    line = compiled.stdout.splitlines()[0]
     assert line.startswith('track_one_box impulse_based: ')
     # nearly all of it compiling: the 0.05 s of simulation costs milliseconds
     loading, total = (float(x) for x in re.findall(r'([\d.]+) s', line))

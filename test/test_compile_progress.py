@@ -5,7 +5,7 @@ import time
 
 import pytest
 
-from feeder_sim import _compile_progress as P
+from feeder_sim.compiled import progress as P
 
 PLAN = [('feeder_sim.a:f', 1.0), ('feeder_sim.a:g', 3.0), ('feeder_sim.a:f', 4.0)]
 

@@ -9,7 +9,10 @@ to round-off instead (``beyond_round_off``).
 """
 
 import json
+import os
 from pathlib import Path
+import subprocess
+import sys
 
 from fingerprint import (
     beyond_round_off,
@@ -22,7 +25,8 @@ from fingerprint import (
 import numpy as np
 import pytest
 
-WANT = json.loads((Path(__file__).parent / 'data' / 'fingerprint.json').read_text())
+HERE = Path(__file__).resolve().parent
+WANT = json.loads((HERE / 'data' / 'fingerprint.json').read_text())
 SAME_PLATFORM = WANT.get(PLATFORM_KEY) == platform_signature()
 
 
@@ -56,3 +60,42 @@ def test_round_off_comparison_refuses_a_change_of_physics():
     assert beyond_round_off(changed(position=10 * POSITION_TOL_M), want) != []
     assert beyond_round_off(changed(events=want['stats']['events'] + 1), want) != []
     assert beyond_round_off(changed(final_t=(1.0).hex()), want) != []
+
+
+# the cases of one method in a fresh process: their fingerprints, and whether the patches of
+# numba internals were on there
+UNPATCHED = '''
+import json, sys
+from fingerprint import cases, run_all
+from feeder_sim.compiled import cache
+got = run_all(cases([sys.argv[1]]), verbose=False)
+print(json.dumps({'cases': got, 'patches': [cache.state['deferred_codegen'],
+                                            cache.state['inline_refcounts']]}))
+'''
+
+
+def test_the_numba_patches_leave_the_physics_alone(tmp_path):
+    """``feeder_sim.compiled.jit`` patches numba (callee-only kernels without machine code of
+    their own, reference counts behind inlined null tests): other machine code, the same
+    physics. impulse_based's cases, compiled cold with both patches off, give the recorded
+    fingerprints (which the patched build gave). Cheap to compile cold (some 20 s in all), they
+    go through the same ``jit`` / ``inner`` machinery as the other methods, and through the
+    collision kernels all methods share."""
+    method = 'impulse_based'
+    env = {k: v for k, v in os.environ.items() if not k.startswith(('NUMBA_', 'FEEDER_SIM'))}
+    env.update(FEEDER_SIM_DEFER_CODEGEN='0', FEEDER_SIM_INLINE_REFCOUNTS='0',
+               FEEDER_SIM_CACHE_DIR=str(tmp_path / 'cache'), FEEDER_SIM_COMPILE_PROGRESS='0',
+               # this checkout's package and fingerprint.py, whatever else is on the path
+               PYTHONPATH=os.pathsep.join(p for p in (str(HERE.parent), str(HERE),
+                                                      env.get('PYTHONPATH')) if p))
+    done = subprocess.run([sys.executable, '-c', UNPATCHED, method], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout.splitlines()[-1])
+    assert out['patches'] == [False, False]
+    assert sorted(out['cases']) == sorted(f'{s}/{m}' for s, m in cases([method]))
+    for name, got in out['cases'].items():
+        if SAME_PLATFORM:
+            assert got == WANT[name], name
+        else:
+            assert beyond_round_off(got, WANT[name]) == [], name

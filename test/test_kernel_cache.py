@@ -18,13 +18,16 @@ import textwrap
 
 import pytest
 
-from feeder_sim import _jit
+from feeder_sim.compiled import cache as kernel_cache
+from feeder_sim.compiled import jit as compiled_jit
 
-PACKAGE = Path(_jit.PACKAGE_ROOT)
+PACKAGE = Path(kernel_cache.PACKAGE_ROOT)
 NOTICE = 'compiling numba kernels for first use'
+# a kernel module's import of the decorators, as the package writes it
+JIT_IMPORT = re.compile(r'^from feeder_sim\.compiled(?:\.jit import | import .*\bjit\b)', re.M)
 
 CALLEE = '''
-from feeder_sim._jit import inner
+from feeder_sim.compiled.jit import inner
 
 
 @inner
@@ -32,25 +35,26 @@ def scale(x):
     return {factor} * x
 '''
 
+# the module form of the import (the callee's is the names' form): both are kernel modules
 CALLER = '''
-from feeder_sim._jit import jit
 from feeder_sim._probe.callee import scale
+from feeder_sim.compiled import jit as _jit
 
 
-@jit
+@_jit.jit
 def probe(x):
     return scale(x) + 1.0
 '''
 
 RUN = '''
 import json
-from feeder_sim import _jit
+from feeder_sim.compiled import cache
 from feeder_sim._probe.caller import probe
 value = probe(3.0)
 print(json.dumps({'value': value, 'hits': sum(probe.stats.cache_hits.values()),
                   'misses': sum(probe.stats.cache_misses.values()),
-                  'cache_path': probe.stats.cache_path, 'key_dir': str(_jit._key_dir()),
-                  'file': _jit.__file__}))
+                  'cache_path': probe.stats.cache_path, 'key_dir': str(cache._key_dir()),
+                  'file': cache.__file__}))
 '''
 
 # a kernel new to the cache, compiled against the callee's cache entry (its IR)
@@ -117,7 +121,7 @@ def test_cold_warm_relocated_and_a_changed_callee(tmp_path):
     assert (cold['value'], cold['hits'], cold['misses']) == (7.0, 0, 1)
     key_dir = Path(cold['key_dir'])
     assert key_dir.parent == cache
-    assert key_dir.name == _jit.cache_key(str(first / 'feeder_sim'))
+    assert key_dir.name == kernel_cache.cache_key(str(first / 'feeder_sim'))
     # the module's folder mirrored under the key: two modules of one name cannot clash
     assert Path(cold['cache_path']) == key_dir / '_probe'
     assert sorted(p.name.split('-')[0] for p in key_dir.glob('_probe/*.nbi')) == \
@@ -127,7 +131,7 @@ def test_cold_warm_relocated_and_a_changed_callee(tmp_path):
     where = re.escape(str(key_dir))
     assert re.fullmatch(rf'feeder_sim: {NOTICE} \(about .+ s, cached in {where}\)', notices[0])
     assert sorted(p.name for p in cache.iterdir()) == sorted(
-        [key_dir.name, 'notes'] + [d.name for d in old[-_jit._KEEP:]])
+        [key_dir.name, 'notes'] + [d.name for d in old[-kernel_cache._KEEP:]])
 
     warm, err = run(first, cache)
     assert (warm['value'], warm['hits'], warm['misses']) == (7.0, 1, 0)
@@ -160,7 +164,7 @@ def edited(root: Path, rel: str, old: str, new: str) -> str:
     assert old in text
     path.write_text(text.replace(old, new, 1))
     try:
-        return _jit.cache_key(str(root))
+        return kernel_cache.cache_key(str(root))
     finally:
         path.write_text(text)
 
@@ -169,12 +173,20 @@ def test_the_key_follows_kernel_sources_and_their_constants_only(tmp_path):
     root = copy_package(tmp_path)
     shutil.rmtree(root / 'feeder_sim' / '_probe')
     root = root / 'feeder_sim'
-    key = _jit.cache_key(str(root))
-    assert key == _jit.cache_key(str(root))
-    kernel_modules = {rel for rel, text in _jit.key_material(str(root))
-                      if rel.endswith('.py') and '_jit import' in text}
+    key = kernel_cache.cache_key(str(root))
+    assert key == kernel_cache.cache_key(str(root))
+    material = kernel_cache.key_material(str(root))
+    kernel_modules = {rel for rel, text in material
+                      if rel.endswith('.py') and JIT_IMPORT.search(text)}
     assert {'contact/_lcp_kernels.py', 'contact/_island_kernels.py',
-            'stepping/time_stepping/_kernels.py'} <= kernel_modules
+            'stepping/time_stepping/_kernels.py', 'compiled/arena.py'} <= kernel_modules
+    # the machinery's whole source: the options and patches, the key and the cache's layout
+    assert {'compiled/jit.py', 'compiled/cache.py'} <= {rel for rel, _ in material}
+    for rel in ('compiled/jit.py', 'compiled/cache.py'):
+        assert edited(root, rel, '\n', '\n# edited\n') != key, rel
+    # the helper and the progress lines make no machine code
+    for rel in ('compiled/ahead.py', 'compiled/progress.py', 'compiled/__init__.py'):
+        assert edited(root, rel, '\n', '\n# edited\n') == key, rel
     # any kernel module, anywhere in the package
     for rel in kernel_modules:
         assert edited(root, rel, '\n', '\n# edited\n') != key, rel
@@ -187,7 +199,40 @@ def test_the_key_follows_kernel_sources_and_their_constants_only(tmp_path):
                   'FIXED, DRIVEN, MOVING = 0, 1, 2  # edited') == key
     # a renamed kernel module cannot be served entries that name the old module
     (root / 'contact' / '_lcp_kernels.py').rename(root / 'contact' / '_lcp_kernels2.py')
-    assert _jit.cache_key(str(root)) != key
+    assert kernel_cache.cache_key(str(root)) != key
+
+
+@pytest.mark.parametrize('form', [
+    'from feeder_sim.compiled.jit import jit',
+    'from feeder_sim.compiled.jit import (\n    inner,\n    jit,\n)',
+    'from feeder_sim.compiled import jit as _jit',
+    'from feeder_sim.compiled import (\n    arena,\n    jit,\n)',
+    'import feeder_sim.compiled.jit',
+    'import feeder_sim.compiled.jit as _jit',
+    'from .compiled import jit',
+    'from .compiled.jit import jit'])
+def test_a_kernel_module_is_one_importing_jit_in_any_form(tmp_path, form):
+    root = copy_package(tmp_path)
+    shutil.rmtree(root / 'feeder_sim' / '_probe')
+    root = root / 'feeder_sim'
+    (root / '_form.py').write_text(f'{form}\n\nX = 1\n')
+    key = kernel_cache.cache_key(str(root))
+    assert '_form.py' in {rel for rel, _ in kernel_cache.key_material(str(root))}
+    assert edited(root, '_form.py', 'X = 1', 'X = 2') != key
+    # an import of the cache alone, or of the arenas alone, makes no kernel module
+    (root / '_form.py').write_text('from feeder_sim.compiled import arena, cache\n\nX = 1\n')
+    assert '_form.py' not in {rel for rel, _ in kernel_cache.key_material(str(root))}
+
+
+def test_no_key_directory_before_the_jit_module_sets_what_the_key_hashes(tmp_path):
+    # the key hashes whether the patches are on, which importing compiled.jit decides; the
+    # cache (which imports nothing of the package) would take another key before
+    tree = copy_package(tmp_path / 'tree')
+    code = ('import json\nfrom feeder_sim.compiled import cache\ntry:\n    cache.key_dir()\n'
+            'except RuntimeError as e:\n    print(json.dumps(str(e)))\n')
+    message, _ = run(tree, tmp_path / 'cache', code)
+    assert message.endswith('before feeder_sim.compiled.jit was imported')
+    assert not (tmp_path / 'cache').exists()
 
 
 @pytest.mark.parametrize('case', ['numba without the internals', 'turned off'])
@@ -195,7 +240,7 @@ def test_without_deferred_codegen_callees_get_their_own_machine_code(tmp_path, c
     tree = copy_package(tmp_path / 'tree')
     cache = tmp_path / 'cache'
     if case == 'turned off':
-        code, env = RUN, {_jit.DEFER_ENV_VAR: '0'}
+        code, env = RUN, {compiled_jit.DEFER_ENV_VAR: '0'}
     else:
         code, env = 'from numba.core import codegen\ndel codegen.JITCodeLibrary\n' + RUN, {}
     for hits in (0, 1):
@@ -207,8 +252,8 @@ def test_without_deferred_codegen_callees_get_their_own_machine_code(tmp_path, c
 
 
 @pytest.mark.parametrize('name, off_means', [
-    (_jit.DEFER_ENV_VAR, 'to give every kernel machine code of its own'),
-    (_jit.INLINE_ENV_VAR, "to keep numba's out-of-line reference counting")])
+    (compiled_jit.DEFER_ENV_VAR, 'to give every kernel machine code of its own'),
+    (compiled_jit.INLINE_ENV_VAR, "to keep numba's out-of-line reference counting")])
 def test_a_switch_other_than_0_or_1_is_one_line_naming_it(tmp_path, name, off_means):
     tree = copy_package(tmp_path / 'tree')
     result, err = run(tree, tmp_path / 'cache', RUN, {name: 'false'})
@@ -224,8 +269,8 @@ REFCOUNTS = '''
 import json, re
 import numpy as np
 from numba.core.runtime import rtsys
-from feeder_sim import _jit
-from feeder_sim._arena import heap_state
+from feeder_sim.compiled import cache, jit as compiled_jit
+from feeder_sim.compiled.arena import heap_state
 from feeder_sim.contact._island_kernels import island_groups
 
 dynamic = np.array([False, True, True, True, True])
@@ -237,9 +282,9 @@ for _ in range(100):
 del out
 after = rtsys.get_allocation_stats()
 ir = island_groups.inspect_llvm(island_groups.signatures[0])
-print(json.dumps({'inlined': _jit._state['inline_refcounts'], 'islands': islands,
+print(json.dumps({'inlined': cache.state['inline_refcounts'], 'islands': islands,
                   'allocated': after.mi_alloc - before.mi_alloc,
-                  'freed': after.mi_free - before.mi_free, 'key_dir': str(_jit._key_dir()),
+                  'freed': after.mi_free - before.mi_free, 'key_dir': str(cache._key_dir()),
                   'tests': len(re.findall(r'%owned[.\\w]* = icmp ne ptr', ir)),
                   'calls': len(re.findall(r'call void @NRT_(?:incref|decref)\\(', ir))}))
 '''
@@ -250,7 +295,7 @@ def test_reference_counts_inlined_or_not_balance_and_give_the_same_answer(tmp_pa
     results = {}
     for inline in ('1', '0'):
         results[inline], _ = run(tree, tmp_path / 'cache', REFCOUNTS,
-                                 {_jit.INLINE_ENV_VAR: inline, 'NUMBA_NRT_STATS': '1'})
+                                 {compiled_jit.INLINE_ENV_VAR: inline, 'NUMBA_NRT_STATS': '1'})
     on, off = results['1'], results['0']
     assert (on['inlined'], off['inlined']) == (True, False)
     # bodies 1 and 2 joined by a contact, 3 and 4 alone: (order, starts, bodies, body_starts)
@@ -266,8 +311,8 @@ def test_reference_counts_inlined_or_not_balance_and_give_the_same_answer(tmp_pa
 
 def test_null_tests_that_llvm_cannot_read_leave_numbas_calls_with_one_line(tmp_path):
     tree = copy_package(tmp_path / 'tree')
-    code = REFCOUNTS.replace('from feeder_sim import _jit\n',
-                             'from feeder_sim import _jit\n_jit._NRT_TESTED = "not IR {op}"\n')
+    imports = 'from feeder_sim.compiled import cache, jit as compiled_jit\n'
+    code = REFCOUNTS.replace(imports, imports + 'compiled_jit._NRT_TESTED = "not IR {op}"\n')
     result, err = run(tree, tmp_path / 'cache', code, {'NUMBA_NRT_STATS': '1'})
     assert result['islands'] == [[0, 1, 3, 2], [0, 2, 3, 4], [1, 2, 3, 4], [0, 2, 3, 4]]
     assert result['allocated'] == result['freed'] > 0
@@ -298,7 +343,7 @@ OTHER_NUMBA = '''
 import ctypes, json
 import numba
 import numpy as np
-from feeder_sim import _jit
+from feeder_sim.compiled import cache
 from feeder_sim._probe.callee import scale
 
 
@@ -335,7 +380,7 @@ address = library.get_pointer_to_function(plus_one.overloads[plus_one.signatures
 native = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_double)(address)
 out, excinfo = ctypes.c_double(), ctypes.c_void_p()
 status = native(ctypes.addressof(out), ctypes.addressof(excinfo), 4.0)
-print(json.dumps({'deferred': _jit._state['deferred_codegen'], 'plus_one_deferred': deferred,
+print(json.dumps({'deferred': cache.state['deferred_codegen'], 'plus_one_deferred': deferred,
                   'twice': twice(np.arange(3.0)).tolist(), 'user': user(3.0),
                   'cfunc': as_c.ctypes(1.0), 'first_class': call(user, 1.0),
                   'asked_for': [status, out.value]}))
@@ -363,14 +408,14 @@ def test_kernel_load_seconds_count_compiles_and_loads_not_calls():
     def hypot(x, y):
         return (x * x + y * y) ** 0.5
 
-    before = _jit.kernel_load_seconds()
+    before = compiled_jit.kernel_load_seconds()
     t0 = time.perf_counter()
     assert hypot(3.0, 4.0) == 5.0
     first_s = time.perf_counter() - t0
-    loaded_s = _jit.kernel_load_seconds() - before
+    loaded_s = compiled_jit.kernel_load_seconds() - before
     # the compile is nearly all of the first call (measured: 0.2 s of compile, 1 ms more)
     assert 0.5 * first_s < loaded_s <= first_s
-    before = _jit.kernel_load_seconds()
+    before = compiled_jit.kernel_load_seconds()
     for _ in range(100):
         hypot(3.0, 4.0)
-    assert _jit.kernel_load_seconds() == before
+    assert compiled_jit.kernel_load_seconds() == before

@@ -585,7 +585,7 @@ def test_compiled_dantzig_gives_the_answers_of_the_python_reference():
     # arithmetic.
     import numba
 
-    from feeder_sim._arena import borrow, heap_state, new_arena, PEAK, release, SHORT
+    from feeder_sim.compiled.arena import borrow, heap_state, new_arena, PEAK, release, SHORT
     from feeder_sim.contact._lcp_kernels import dantzig as inner_dantzig
 
     @numba.njit
@@ -647,7 +647,7 @@ def test_a_solve_on_given_row_states_is_taken_only_where_it_solves_the_lcp(frict
     #   states are turned down (measured: 86 of 283 and 113 of 249 taken).
     import numba
 
-    from feeder_sim._arena import borrow, heap_state
+    from feeder_sim.compiled.arena import borrow, heap_state
     from feeder_sim.contact._island_kernels import STATES_TOL
     from feeder_sim.contact._lcp_kernels import dantzig as inner_dantzig
     from feeder_sim.contact._lcp_kernels import solve_with_states as inner_states

@@ -19,7 +19,7 @@ from hypothesis import strategies as hs
 import numpy as np
 import pytest
 
-from feeder_sim._arena import heap_state
+from feeder_sim.compiled.arena import heap_state
 from feeder_sim.contact import _island_kernels as K
 from feeder_sim.contact import lcp
 from feeder_sim.contact._feature_kernels import sum_by_feature
@@ -738,7 +738,7 @@ def test_arenas_too_small_give_the_same_steps_and_grow():
     # A step whose scratch does not fit its arena takes the rest from overflow blocks: the
     # same bits as a step with room, every block freed by the end of the call, and the
     # stepper doubles its arenas for the next call.
-    from feeder_sim._arena import BLOCKS, N_BLOCKS, new_arena, SHORT
+    from feeder_sim.compiled.arena import BLOCKS, N_BLOCKS, new_arena, SHORT
 
     roomy, cramped = pile(12, compiled=True), pile(12, compiled=True)
     small = (new_arena(64), new_arena(64))

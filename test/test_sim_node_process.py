@@ -112,7 +112,7 @@ def test_colcon_installs_where_ros2_run_and_the_ament_index_look(workspace):
     assert (share / 'feeder_sim' / 'config' / 'track_one_box.yaml').is_file()
     assert (share / 'feeder_sim' / 'config' / 'sim_node.params.yaml').is_file()
     # the first compile's plans travel with the package
-    plans = install.glob('feeder_sim/lib/python*/site-packages/feeder_sim/_compile_plans/*')
+    plans = install.glob('feeder_sim/lib/python*/site-packages/feeder_sim/compiled/plans/*')
     assert sorted(p.name for p in plans) == ['event_driven.json']
 
 

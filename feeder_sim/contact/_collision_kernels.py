@@ -3,7 +3,7 @@
 The tests are those the module docstring of ``collision`` states. Library sorts,
 ``searchsorted`` and sets are avoided: each pulls generic code into the compile and
 lengthens it (``benchmarks/compile.py``).
-The kernels take a scratch arena first (``ar``, :mod:`feeder_sim._arena`).
+The kernels take a scratch arena first (``ar``, :mod:`feeder_sim.compiled.arena`).
 """
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from feeder_sim._arena import arange_i, empty_f, empty_i, full_b, full_i, gather
-from feeder_sim._jit import inner, jit
+from feeder_sim.compiled.arena import arange_i, empty_f, empty_i, full_b, full_i, gather
+from feeder_sim.compiled.jit import inner, jit
 
 _RUN = 16      # _argsort's insertion-sorted runs
 _RADIX_BITS = 8     # _argsort_int's digit

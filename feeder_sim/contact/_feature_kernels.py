@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from feeder_sim._jit import jit
+from feeder_sim.compiled.jit import jit
 
 # Fibonacci hashing: the key times 2^64 / golden ratio, its top bits the slot.
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)

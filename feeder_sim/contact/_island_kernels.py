@@ -9,8 +9,9 @@ projection's normal-row problems, rather than a kernel of its own that would com
 reproduces the numpy code in :mod:`.dynamics` / ``time_stepping`` it replaces with the same
 arithmetic where that code is the reference (``test/test_pile.py`` holds them together).
 
-Each kernel takes a scratch arena first (``ar``, :mod:`feeder_sim._arena`): the compiled step
-passes its own, calls from Python ``heap_state()``, whose arrays are ordinary numpy ones.
+Each kernel takes a scratch arena first (``ar``, :mod:`feeder_sim.compiled.arena`): the
+compiled step passes its own, calls from Python ``heap_state()``, whose arrays are ordinary
+numpy ones.
 
 Compile time (measured by ``benchmarks/compile.py``): a cold time-stepping run compiles
 these kernels, later runs load their machine code from the cache. The code avoids numba's
@@ -25,7 +26,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from feeder_sim._arena import (
+from feeder_sim.compiled.arena import (
     arange_i,
     copy_i,
     empty_b,
@@ -40,7 +41,7 @@ from feeder_sim._arena import (
     zeros_f,
     zeros_f2,
 )
-from feeder_sim._jit import inner, jit
+from feeder_sim.compiled.jit import inner, jit
 from feeder_sim.contact._collision_kernels import _argsort
 from feeder_sim.contact._lcp_kernels import (
     _affine,

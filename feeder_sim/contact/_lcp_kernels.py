@@ -7,15 +7,15 @@ states (the event-driven method re-solves its modes that way).
 The port keeps the reference's sets, events and tolerances; it is flat on purpose (three
 functions): numba optimizes and compiles every callee again inside each kernel that Python
 calls, so deep call trees multiply the compile time (``benchmarks/compile.py``). Its
-scratch comes from an arena (``ar``, :mod:`feeder_sim._arena`); each pivot's is given back
-before the next.
+scratch comes from an arena (``ar``, :mod:`feeder_sim.compiled.arena`); each pivot's is given
+back before the next.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from feeder_sim._arena import (
+from feeder_sim.compiled.arena import (
     arange_i,
     copy_f,
     copy_f2,
@@ -29,7 +29,7 @@ from feeder_sim._arena import (
     release,
     zeros_f,
 )
-from feeder_sim._jit import inner, jit
+from feeder_sim.compiled.jit import inner, jit
 
 # ---------------------------------------------------------------------------------------------
 # A x + b and the residual, shared with the island solvers (``_island_kernels``)

@@ -14,7 +14,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from feeder_sim._jit import inner
+from feeder_sim.compiled.jit import inner
 from feeder_sim.model.world import State, World
 
 

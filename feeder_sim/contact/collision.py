@@ -85,7 +85,7 @@ import math
 
 import numpy as np
 
-from feeder_sim._arena import heap_state
+from feeder_sim.compiled.arena import heap_state
 from feeder_sim.contact._collision_kernels import (
     clean_contacts,
     narrow_phase,

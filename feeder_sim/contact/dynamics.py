@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from feeder_sim._arena import heap_state
+from feeder_sim.compiled.arena import heap_state
 from feeder_sim.contact._island_kernels import island_groups
 from feeder_sim.contact.collision import CONTACT_FIELDS, Contacts
 from feeder_sim.contact.lcp import FrictionalLCP

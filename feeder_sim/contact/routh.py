@@ -32,7 +32,7 @@ import math
 
 import numpy as np
 
-from feeder_sim._jit import inner, jit
+from feeder_sim.compiled.jit import inner, jit
 
 __all__ = ['collide', 'CollisionResult', 'LAWS', 'routh_collision']
 

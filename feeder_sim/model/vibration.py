@@ -18,7 +18,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from feeder_sim._jit import inner
+from feeder_sim.compiled.jit import inner
 from feeder_sim.model.checks import is_number
 
 TWO_PI = 2.0 * math.pi

@@ -68,7 +68,7 @@ from std_msgs.msg import Bool, Float64MultiArray, UInt32
 from std_srvs.srv import SetBool, Trigger
 from visualization_msgs.msg import MarkerArray
 
-from feeder_sim._jit import in_first_use, kernel_load_seconds
+from feeder_sim.compiled.jit import in_first_use, kernel_load_seconds
 from feeder_sim.model.scene import METHODS, SceneError
 from feeder_sim.model.vibration import (
     CommandLimits,

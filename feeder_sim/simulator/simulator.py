@@ -11,7 +11,7 @@ import os
 
 import numpy as np
 
-from feeder_sim import _jit
+from feeder_sim.compiled import jit as compiled_jit
 from feeder_sim.contact.dynamics import SolverStats
 from feeder_sim.model.checks import is_number
 from feeder_sim.model.scene import (
@@ -153,7 +153,7 @@ class Simulator:
     def _make_stepper(self):
         spec = self.scene.solver
         settings = None if self._settings is None else copy.deepcopy(self._settings)
-        _jit.expect(spec.method)
+        compiled_jit.expect(spec.method)
         stepper = STEPPERS[spec.method](self.world, spec, self.stats, settings)
         if self.energy_check is not None:
             stepper.after_event = self.energy_check.after_event

@@ -26,8 +26,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from feeder_sim._arena import heap_arena
-from feeder_sim._jit import inner, jit
+from feeder_sim.compiled.arena import heap_arena
+from feeder_sim.compiled.jit import inner, jit
 from feeder_sim.model.world import DRIVEN, MOVING
 from feeder_sim.stepping.event_driven import _kernels as kern
 

@@ -28,8 +28,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from feeder_sim._arena import heap_arena
-from feeder_sim._jit import inner, jit
+from feeder_sim.compiled.arena import heap_arena
+from feeder_sim.compiled.jit import inner, jit
 from feeder_sim.contact._collision_kernels import sorted_unique
 from feeder_sim.contact._lcp_kernels import BOX_ROW, reduce_lcp, SLAVED_ROW
 from feeder_sim.contact._lcp_kernels import lcp_dantzig as lcp_dantzig

@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-from feeder_sim._jit import inner, jit
+from feeder_sim.compiled.jit import inner, jit
 from feeder_sim.contact.routh import JAM, REVERSE, routh_collision, STICK
 from feeder_sim.model.vibration import segment_motion
 from feeder_sim.model.world import DRIVEN, MOVING

@@ -37,7 +37,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from feeder_sim._arena import (
+from feeder_sim.compiled.arena import (
     borrow,
     concat,
     copy_f,
@@ -55,7 +55,7 @@ from feeder_sim._arena import (
     zeros_f,
     zeros_f2,
 )
-from feeder_sim._jit import inner, jit
+from feeder_sim.compiled.jit import inner, jit
 from feeder_sim.contact._collision_kernels import (
     _argsort,
     _argsort_int,
@@ -1166,15 +1166,15 @@ def advance(t, t_end, pos, ang, vel, om, bodies, shapes, drives, st, warm, appro
     step in which a pair could close too fast for the scheme is shortened
     (:func:`safe_step_inline`); the next one starts where it ended.
 
-    A step's scratch comes from one of the two ``arenas`` (:mod:`feeder_sim._arena`), reset
-    when the step starts; steps alternate between them because the impulses (and held-back
-    velocities) a step leaves for the next one live in its arena. They leave as ordinary
-    arrays."""
+    A step's scratch comes from one of the two ``arenas`` (:mod:`feeder_sim.compiled.arena`),
+    reset when the step starts; steps alternate between them because the impulses (and
+    held-back velocities) a step leaves for the next one live in its arena. They leave as
+    ordinary arrays."""
     h = st.time_step_s
     code = DONE
     n = 0
     scratch = (borrow(arenas[0]), borrow(arenas[1]))
-    # everything below works on views no kernel owns (``_arena.borrow``): Python holds the
+    # everything below works on views no kernel owns (``arena.borrow``): Python holds the
     # arrays until the call returns
     pos, ang, vel, om = borrow(pos), borrow(ang), borrow(vel), borrow(om)
     ints, floats, msgs, n_msgs = borrow(ints), borrow(floats), borrow(msgs), borrow(n_msgs)

@@ -106,9 +106,9 @@ non-finite bounds (its error). The velocities speculative rows held back for res
 ``TimeStepSettings(compiled=False)`` runs the reference alone.
 
 The kernel's steps make no numpy allocation: their scratch arrays come from two arenas
-(``feeder_sim._arena``) sized from the scene's vertex count and doubled when a step needed
-more (that step is served from the heap meanwhile, with the same bits), and the arrays it is
-given are borrowed, so no reference is counted along the way.
+(``feeder_sim.compiled.arena``) sized from the scene's vertex count and doubled when a step
+needed more (that step is served from the heap meanwhile, with the same bits), and the arrays it
+is given are borrowed, so no reference is counted along the way.
 
 Within ``step``, the per-contact set-up (index set, Newton / push-out rows, Kawachi's bounds)
 is ``_island_kernels.contact_rows``, with the bits of the numpy code it replaced
@@ -127,7 +127,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from feeder_sim._arena import grown_capacity, heap_state, new_arena, SHORT
+from feeder_sim.compiled.arena import grown_capacity, heap_state, new_arena, SHORT
 from feeder_sim.contact import _island_kernels as K
 from feeder_sim.contact import lcp
 from feeder_sim.contact._collision_kernels import NarrowPhaseTolerances

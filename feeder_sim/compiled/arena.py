@@ -49,7 +49,7 @@ from numba import types
 from numba.extending import intrinsic, overload, register_jitable
 import numpy as np
 
-from feeder_sim._jit import inner
+from feeder_sim.compiled.jit import inner
 
 BASE, CAPACITY, USED, SHORT, PEAK, BLOCKS, N_BLOCKS = range(7)
 _FIELDS = N_BLOCKS + 1

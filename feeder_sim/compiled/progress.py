@@ -1,15 +1,15 @@
 """A first compile you can watch: kernels compiled against the plan, time spent, time left.
 
 numba compiles a stepping method's kernels in one call tree that may take minutes on a cold
-cache, printing nothing. :func:`start` (called by ``_jit`` when the first package kernel starts
-compiling) counts every package kernel that becomes ready (compiled here, or loaded from what
-the compile-ahead helper compiled: ``_compile_ahead.ready_hook``) and shows, while the compiler
-is busy: on a terminal a tqdm bar refreshed twice a second, otherwise a line every
-:data:`LINE_INTERVAL_S` seconds. With the method's compile plan
-(``_compile_plans/<method>.json``: the kernels a first run compiles and each one's recorded
-time) it knows how many kernels the run needs and estimates the time left from the recorded
-times of those still to come, scaled by how fast the ones done went on this machine. It stops,
-with one closing line, once the compiler has been idle for :data:`IDLE_S` seconds.
+cache, printing nothing. :class:`CompileProgress` (started by :mod:`.jit` when the first
+package kernel starts compiling) counts every package kernel that becomes ready (compiled here,
+or loaded from what the compile-ahead helper compiled: ``ahead.ready_hook``) and shows, while
+the compiler is busy: on a terminal a tqdm bar refreshed twice a second, otherwise a line every
+:data:`LINE_INTERVAL_S` seconds. With the method's compile plan (``plans/<method>.json``: the
+kernels a first run compiles and each one's recorded time) it knows how many kernels the run
+needs and estimates the time left from the recorded times of those still to come, scaled by how
+fast the ones done went on this machine. It stops, with one closing line, once the compiler has
+been idle for :data:`IDLE_S` seconds. It imports nothing else of feeder_sim.
 """
 
 from __future__ import annotations

@@ -4,10 +4,10 @@ numba compiles in one thread of one process (its compiler lock), most of it in P
 and lowering: three fifths of the default run's first compile, LLVM the rest); a 2-core
 machine leaves a core idle for a minute. Here, when a run starts compiling a stepping method's
 kernels on a cold cache, it starts one helper process that compiles, from a *plan*, the
-kernels the run will need last, into the same keyed cache (:mod:`._jit`); when the run gets to
-them it loads them.
+kernels the run will need last, into the same keyed cache (:mod:`.cache`); when the run gets
+to them it loads them.
 
-A plan (``_compile_plans/<method>.json``) is what a first run of the default scene compiled,
+A plan (``plans/<method>.json``) is what a first run of the default scene compiled,
 recorded by ``test/compile_plan.py``: every kernel and signature in the order their compiles
 ended, each with its own compile time (callees' excluded) and the kernels its typing asked
 for. :func:`helper_share` picks the helper's part, consecutive kernels of that order, by
@@ -41,8 +41,10 @@ import sys
 import threading
 import time
 
+from feeder_sim.compiled import cache
+
 HELPER_ENV_VAR = 'FEEDER_SIM_COMPILE_HELPER'
-PLAN_DIR = Path(__file__).resolve().parent / '_compile_plans'
+PLAN_DIR = Path(__file__).resolve().parent / 'plans'
 # A compile of one kernel takes at most some tens of seconds; the process holding the lock may
 # also be stopped (a debugger, SIGSTOP). Past this the waiting process compiles on its own.
 LOCK_WAIT_S = 300.0
@@ -54,7 +56,7 @@ HELPER_START_S = 2.5
 _held: dict[str, int] = {}               # kernel -> lock file descriptor, this process
 _lock_guard = threading.Lock()
 _recording: list | None = None            # see record()
-ready_hook = None       # called as each package kernel becomes ready (see _compile_progress)
+ready_hook = None       # called as each package kernel becomes ready (see progress.py)
 _helper: dict = {'process': None}
 _waited = {'s': 0.0, 'now': 0}            # see lock_wait_seconds(), waiting()
 
@@ -66,20 +68,18 @@ def waiting() -> bool:
 
 def lock_wait_seconds() -> float:
     """Wall time (s) this process has waited for compile locks outside numba's own compiler
-    lock (whose holding :func:`._jit.kernel_load_seconds` counts): with it, all the time
+    lock (whose holding :func:`.jit.kernel_load_seconds` counts): with it, all the time
     first use took."""
     return _waited['s']
 
 
 def kernel_name(dispatcher) -> str | None:
     """``module:qualname`` of a package kernel a helper can import, else None."""
-    from feeder_sim._jit import PACKAGE_ROOT
-
     py_func = getattr(dispatcher, 'py_func', None)
     code = getattr(py_func, '__code__', None)
     if code is None or '<locals>' in py_func.__qualname__:
         return None
-    if not os.path.abspath(code.co_filename).startswith(PACKAGE_ROOT + os.sep):
+    if not os.path.abspath(code.co_filename).startswith(cache.PACKAGE_ROOT + os.sep):
         return None
     # a kernel its module names (not an overload numba made of a Python function)
     if getattr(sys.modules.get(py_func.__module__), py_func.__qualname__, None) is not dispatcher:
@@ -88,10 +88,8 @@ def kernel_name(dispatcher) -> str | None:
 
 
 def _lock_path(name: str) -> Path | None:
-    from feeder_sim import _jit
-
     try:
-        folder = _jit.key_dir() / '.locks'
+        folder = cache.key_dir() / '.locks'
         folder.mkdir(exist_ok=True)
     except (OSError, SyntaxError, UnicodeDecodeError):
         return None
@@ -425,6 +423,18 @@ def _cores() -> int:
         return os.cpu_count() or 1
 
 
+# The helper's program. jit first: its install() sets the flags the cache's key hashes (the
+# patches' switches) and the compile locks, before this module takes a key for the helper's
+# lock; this module does not import jit (jit imports it). Not a normal exit: the thread reading
+# stdin would hold its lock at shutdown (abort).
+_HELPER_PROGRAM = '''
+import os, sys
+from feeder_sim.compiled import jit
+from feeder_sim.compiled import ahead
+os._exit(ahead._helper_main(sys.argv[1]))
+'''
+
+
 def start_helper(method: str) -> bool:
     """Start the helper for ``method``'s plan unless it is off, pointless or started: whether
     it started."""
@@ -432,14 +442,12 @@ def start_helper(method: str) -> bool:
         return False
     if _cores() < 2 or load_plan(method) is None or _lock_path(f'helper:{method}') is None:
         return False   # one core, no plan, or no shared cache for the helper to fill
-    from feeder_sim._jit import PACKAGE_ROOT
-
     # this very package, whatever the helper's sys.path would find first
-    parent = os.path.dirname(PACKAGE_ROOT)
+    parent = os.path.dirname(cache.PACKAGE_ROOT)
     path = os.pathsep.join(p for p in (parent, os.environ.get('PYTHONPATH')) if p)
     try:
         process = subprocess.Popen(
-            [sys.executable, '-m', 'feeder_sim._compile_ahead', method],
+            [sys.executable, '-c', _HELPER_PROGRAM, method],
             stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
             env={**os.environ, HELPER_ENV_VAR: '0', 'PYTHONPATH': path})
     except OSError:
@@ -447,8 +455,3 @@ def start_helper(method: str) -> bool:
     _helper['process'] = process
     threading.Thread(target=process.wait, daemon=True).start()   # no zombie once it is done
     return True
-
-
-if __name__ == '__main__':
-    # not a normal exit: the thread reading stdin would hold its lock at shutdown (abort)
-    os._exit(_helper_main(sys.argv[1]))
