@@ -811,3 +811,16 @@ def test_parameter_and_expression_errors_name_the_key(changes, given, path, frag
     with pytest.raises(SceneError) as err:
         parse_scene(data, parameters=given)
     assert err.value.path == path and fragment in err.value.message, str(err.value)
+
+
+def test_each_method_takes_its_step_rule_from_the_fastest_drive():
+    from feeder_sim.model.scene import METHODS, STEP_RULES
+    from feeder_sim.stepping import STEPPERS
+    assert set(STEP_RULES) == set(METHODS) == set(STEPPERS)
+    ts, ed = STEP_RULES['time_stepping'], STEP_RULES['event_driven']
+    assert ts.step([]) == 1e-3                                  # no drive: its longest step
+    assert ts.step([50.0, 0.0]) == 1.0 / (400 * 50.0)           # a drive at rest sets no bound
+    assert ts.step([50.0, 200.0]) == 1.0 / (400 * 200.0)        # the fastest drive does
+    assert ed.step([50.0]) == 1.0 / (16 * 50.0) and ed.step([]) == math.inf
+    for name, stepper in STEPPERS.items():
+        assert stepper.name == name and stepper.step_rule is STEP_RULES[name]
