@@ -419,3 +419,54 @@ def test_kernel_load_seconds_count_compiles_and_loads_not_calls():
     for _ in range(100):
         hypot(3.0, 4.0)
     assert compiled_jit.kernel_load_seconds() == before
+
+
+# Two functions of one module with one qualified name (two lambdas here; the heap forms of
+# arena.empty_i and empty_b in the package), each called through an inner kernel: numba names
+# a compiled function by module, qualified name, argument types and a number it counts in each
+# process, so each compiled first in a process of its own got one name, and a caller linking
+# both inner kernels' cache entries (their IR) one body for both calls (44.0 here; a corrupted
+# heap in a study's workers).
+TWINS = '''
+from feeder_sim.compiled.jit import inner, jit
+
+first = inner(lambda x: x + 1.0)
+second = inner(lambda x: x * 2.0)
+
+
+@inner
+def via_first(x):
+    return first(x)
+
+
+@inner
+def via_second(x):
+    return second(x)
+
+
+@jit
+def run_first(x):
+    return via_first(x)
+
+
+@jit
+def run_second(x):
+    return via_second(x)
+
+
+@jit
+def run_both(x):
+    return via_first(x) + 10.0 * via_second(x)
+'''
+
+
+def test_functions_of_one_name_compiled_in_two_processes_keep_their_own_code(tmp_path):
+    tree = copy_package(tmp_path / 'tree')
+    (tree / 'feeder_sim' / '_probe' / 'twins.py').write_text(TWINS)
+    cache = tmp_path / 'cache'
+    call = ('import json\nfrom feeder_sim._probe import twins\n'
+            'print(json.dumps(twins.{}(3.0)))\n')
+    assert run(tree, cache, call.format('run_first'))[0] == 4.0
+    assert run(tree, cache, call.format('run_second'))[0] == 6.0
+    # both inner kernels from the cache, linked into a new caller: 4 + 10 * 6
+    assert run(tree, cache, call.format('run_both'))[0] == 64.0

@@ -4,8 +4,12 @@ compiles.
 :func:`jit` and :func:`inner` are the decorators of every kernel module. Importing this module
 installs (:func:`install`), before any kernel is decorated: the keyed cache (:mod:`.cache`), the
 compile locks shared with a helper process (:mod:`.ahead`), the first compile's notice and
-progress (:mod:`.progress`), and two patches of numba internals. A compile is long and
+progress (:mod:`.progress`), and three patches of numba internals. A compile is long and
 otherwise silent, so it is announced by one line on stderr when (and only when) one starts.
+
+Compiled functions are numbered apart from those of any other process (see
+:func:`_unique_function_names`): code linked from the cache, compiled elsewhere, must never
+share a name with different code compiled here.
 
 Kernels that only other kernels call (:func:`inner`) get no machine code of their own: numba
 would compile each of them on its own and again inside every caller (see
@@ -23,8 +27,10 @@ numpy reference it ports.
 from __future__ import annotations
 
 from collections.abc import Callable
+import itertools
 import os
 import re
+import secrets
 import sys
 
 import numba
@@ -249,6 +255,28 @@ def _defer_codegen() -> None:
         setattr(library_class, name, materialized(method))
 
 
+def _unique_function_names() -> None:
+    """Number this process's compiled functions apart from any other process's.
+
+    numba names a compiled function by its module, qualified name, argument types and a
+    number it counts from 1 in each process: unique within a process only. Two functions of
+    one module with one qualified name (two lambdas, two closures of one factory), each
+    compiled first in a process of its own, can so get one name. A caller that links both
+    from the cache (inner kernels' IR, numba's own linkable bitcode) keeps one body under
+    that name (``linkonce_odr``) and runs it for both: the heap forms of ``arena.empty_i``
+    and ``arena.empty_b`` made one-byte arrays where eight-byte ones were written, and the
+    process died of a corrupted heap. Counting from a random 48-bit start, two processes'
+    numbers meet with a chance of about n / 2**47 for n functions compiled. Builds on numba
+    internals (``FunctionIdentity._unique_ids``): AttributeError if they moved."""
+    from numba.core import bytecode
+
+    identity = bytecode.FunctionIdentity
+    identity._unique_ids  # noqa: B018 (AttributeError if it moved)
+    if not getattr(identity, '_feeder_sim_ids', False):
+        identity._unique_ids = itertools.count(secrets.randbits(48) + 1)
+        identity._feeder_sim_ids = True
+
+
 def _switch(name: str, off_means: str) -> bool:
     """An on/off environment variable, on unless it is 0; anything but 0 or 1 gets one line."""
     value = os.environ.get(name, '1').strip() or '1'
@@ -340,6 +368,8 @@ def install() -> bool:
     except (ImportError, AttributeError, TypeError):
         pass  # a notice only
     try:
+        _unique_function_names()
+        # without unique names, linking a callee's IR from the cache may take another body
         if _switch(DEFER_ENV_VAR, 'to give every kernel machine code of its own'):
             _defer_codegen()
             cache.state['deferred_codegen'] = True
