@@ -1,10 +1,17 @@
 """Compiled work of the impulse-based method: a step's collisions resolved one contact point at
 a time (Routh's frictional impulse at each), the time-of-impact search and the run of steps to
-a stop time. :mod:`.stepper` prepares the arrays and reads the counters back."""
+a stop time. :mod:`.stepper` prepares the arrays and reads the counters back.
+
+The kernels take the world's constants as :class:`~feeder_sim.model.arrays.BodyArrays` and
+:class:`~feeder_sim.model.arrays.ShapeArrays`, and the method's own arrays and numbers as the
+named tuples below: :class:`ImpulseParams` (settings), :class:`Candidates` (the contacts
+looked at), :class:`Motion` (the state, and the trial step's copy of it) and :class:`Outputs`
+(counters, float outputs, impulses summed per feature)."""
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -24,6 +31,59 @@ COUNTER_NAMES = ('steps', 'collisions', 'micro_collisions', 'sweeps', 'most_swee
 F_MAX_PEN, F_CAP_T, F_GIVE_UP_T = 0, 1, 2
 
 
+class ImpulseParams(NamedTuple):
+    """The method's settings and derived numbers (SI units), see ``ImpulseSettings``."""
+
+    margin_m: float        # candidate margin: the candidates are detected again past half of it
+    width_m: float         # thinnest piece (against tunnelling)
+    h_max: float           # largest step
+    eps: float             # collision envelope
+    eps_pen: float         # deepest sink of a step (time-of-impact floor)
+    v_sep: float           # bounce speed
+    micro_speed: float     # approach speed below which a collision is a micro-collision
+    friction_on: bool      # friction impulse in real collisions
+    law: int               # restitution law (``routh.LAWS``)
+    max_sweeps: int        # sequential sweeps of one instant before giving up
+    max_toi: int           # step shortenings before a step is taken anyway
+    h_min: float           # shortest step
+
+
+class Candidates(NamedTuple):
+    """Active corners (of body ``body``) against convex pieces of other bodies (of body
+    ``piece_body``, edges ``start`` to ``end``), one row each, and the poses at detection."""
+
+    body: np.ndarray          # (c,) int64 body of the corner
+    local: np.ndarray         # (c, 2) corner in its body's frame
+    sides: np.ndarray         # (c, 4) body-frame unit vectors to the corner's two neighbours
+    piece_body: np.ndarray    # (c,) int64 body of the piece
+    start: np.ndarray         # (c,) int64 first edge of the piece
+    end: np.ndarray           # (c,) int64 one past its last edge
+    mu_static: np.ndarray     # (c,) of the pair
+    mu_dynamic: np.ndarray    # (c,)
+    restitution: np.ndarray   # (c,)
+    anchor_pos: np.ndarray    # (n, 2) positions at detection
+    anchor_ang: np.ndarray    # (n,) angles at detection
+
+
+class Motion(NamedTuple):
+    """Poses and velocities of every body: the state, or a trial step's copy of it."""
+
+    pos: np.ndarray    # (n, 2)
+    ang: np.ndarray    # (n,)
+    vel: np.ndarray    # (n, 2)
+    om: np.ndarray     # (n,)
+
+
+class Outputs(NamedTuple):
+    """What the kernels write besides the state."""
+
+    acc_n: np.ndarray      # (c, max piece size) normal impulse summed per feature
+    acc_t: np.ndarray      # (c, max piece size) tangential impulse summed per feature
+    acc_geo: np.ndarray    # (c, max piece size, 5) point, normal, gap of its latest contact
+    counters: np.ndarray   # (len(COUNTER_NAMES),) int64, C_*
+    fout: np.ndarray       # (3,) float outputs, F_*
+
+
 # ------------------------------------------------------------------------ kernel geometry
 # A side of a corner pointing into a face by more than this angle (rad) marks a face the
 # corner cannot touch (another corner's end face). Resting parts and trial steps tilt far
@@ -36,8 +96,12 @@ _CAPPED_SINK = 8
 
 
 @jit
-def _poses(t1, h, kind, drive_row, drives, gravity, pos, ang, vel, om, pos1, ang1, vel1, om1):
-    """Free flight from t1 - h to t1: ballistic dynamic bodies, driven bodies on their drives."""
+def _poses(t1, h, bodies, drives, now, work):
+    """Free flight from t1 - h to t1 (``now`` to ``work``): ballistic dynamic bodies, driven
+    bodies on their drives."""
+    kind, drive_row, gravity = bodies.kind, bodies.drive_row, bodies.gravity
+    pos, ang, vel, om = now
+    pos1, ang1, vel1, om1 = work
     for i in range(kind.shape[0]):
         k = kind[i]
         if k == MOVING:
@@ -61,8 +125,9 @@ def _poses(t1, h, kind, drive_row, drives, gravity, pos, ang, vel, om, pos1, ang
 
 
 @inner
-def _corner_gap(pos, ang, a, local, sides, b, start, end, verts, normals, internal, eps):
-    """World point of corner ``local`` of body a, its gap to body b's piece and the face.
+def _corner_gap(now, shapes, cand, k, eps):
+    """World point of candidate k's corner (``local`` of body a), its gap to body b's piece
+    and the face.
 
     Outside the envelope the gap is the largest signed distance from the piece's outer edge
     lines (a lower bound of the true distance). Within it, the face is the least-penetrated
@@ -71,6 +136,12 @@ def _corner_gap(pos, ang, a, local, sides, b, start, end, verts, normals, intern
     supporting-vertex test of ``collision.find_contacts``). A corner meeting a corner is
     otherwise taken against the end face beside it, whose normal stops every slide along the
     other face."""
+    pos, ang = now.pos, now.ang
+    verts, normals, internal = shapes.vertices, shapes.normals, shapes.edge_internal
+    a, b = cand.body[k], cand.piece_body[k]
+    start, end = cand.start[k], cand.end[k]
+    local = cand.local[k]
+    sides = cand.sides[k]
     c, s = math.cos(ang[a]), math.sin(ang[a])
     px = pos[a, 0] + c * local[0] - s * local[1]
     py = pos[a, 1] + s * local[0] + c * local[1]
@@ -98,33 +169,41 @@ def _corner_gap(pos, ang, a, local, sides, b, start, end, verts, normals, intern
 
 
 @inner
-def _face_frame(ang, body, normals, face):
+def _face_frame(now, shapes, body, face):
+    ang, normals = now.ang, shapes.normals
     c, s = math.cos(ang[body]), math.sin(ang[body])
     return c * normals[face, 0] - s * normals[face, 1], s * normals[face, 0] + c * normals[face, 1]
 
 
 @inner
-def _relative(vel, om, a, b, rax, ray, rbx, rby, nx, ny):
+def _relative(now, a, b, rax, ray, rbx, rby, nx, ny):
     """(u_T, u_N) of a's corner against b's material point, tangent = normal rotated +90."""
+    vel, om = now.vel, now.om
     relx = (vel[a, 0] - om[a] * ray) - (vel[b, 0] - om[b] * rby)
     rely = (vel[a, 1] + om[a] * rax) - (vel[b, 1] + om[b] * rbx)
     return -ny * relx + nx * rely, nx * relx + ny * rely
 
 
 @inner
-def _gap_rate(pos, ang, vel, om, a, b, px, py, nx, ny):
-    _, un = _relative(vel, om, a, b, px - pos[a, 0], py - pos[a, 1], px - pos[b, 0],
+def _gap_rate(now, a, b, px, py, nx, ny):
+    pos = now.pos
+    _, un = _relative(now, a, b, px - pos[a, 0], py - pos[a, 1], px - pos[b, 0],
                       py - pos[b, 1], nx, ny)
     return un
 
 
 # ------------------------------------------------------------------------ kernel: collisions
 @inner
-def _resolve(t, pos, ang, vel, om, inv_mass, inv_inertia, cv_body, cv_local, cv_sides, cp_body,
-             cp_start, cp_end, c_mu_s, c_mu_d, c_e, verts, normals, internal, eps, v_sep,
-             micro_speed, friction_on, law, max_sweeps, acc_n, acc_t, acc_geo, counters, fout):
+def _resolve(t, now, bodies, shapes, cand, prm, out):
     """Sequential collisions of every approaching contact within the envelope at time t;
     returns whether the sweeps hit their cap (some contact may still approach)."""
+    pos, vel, om = now.pos, now.vel, now.om
+    inv_mass, inv_inertia = bodies.inv_mass, bodies.inv_inertia
+    cv_body, cp_body, cp_start = cand.body, cand.piece_body, cand.start
+    c_mu_s, c_mu_d, c_e = cand.mu_static, cand.mu_dynamic, cand.restitution
+    eps, v_sep, micro_speed = prm.eps, prm.v_sep, prm.micro_speed
+    friction_on, law, max_sweeps = prm.friction_on, prm.law, prm.max_sweeps
+    acc_n, acc_t, acc_geo, counters, fout = out
     nc = cv_body.shape[0]
     idx = np.empty(nc, np.int64)
     geo = np.empty((nc, 9))     # rax, ray, rbx, rby, nx, ny, ktt, ktn, knn
@@ -132,13 +211,12 @@ def _resolve(t, pos, ang, vel, om, inv_mass, inv_inertia, cv_body, cv_local, cv_
     m = 0
     for c in range(nc):
         a, b = cv_body[c], cp_body[c]
-        px, py, gap, face = _corner_gap(pos, ang, a, cv_local[c], cv_sides[c], b, cp_start[c],
-                                        cp_end[c], verts, normals, internal, eps)
+        px, py, gap, face = _corner_gap(now, shapes, cand, c, eps)
         if face < 0 or gap > eps:
             continue
         if -gap > fout[F_MAX_PEN]:
             fout[F_MAX_PEN] = -gap
-        nx, ny = _face_frame(ang, b, normals, face)
+        nx, ny = _face_frame(now, shapes, b, face)
         tx, ty = -ny, nx
         rax, ray = px - pos[a, 0], py - pos[a, 1]
         rbx, rby = px - pos[b, 0], py - pos[b, 1]
@@ -167,7 +245,7 @@ def _resolve(t, pos, ang, vel, om, inv_mass, inv_inertia, cv_body, cv_local, cv_
     while True:
         for k in range(m):
             a, b = cv_body[idx[k]], cp_body[idx[k]]
-            _, un_now[k] = _relative(vel, om, a, b, geo[k, 0], geo[k, 1], geo[k, 2], geo[k, 3],
+            _, un_now[k] = _relative(now, a, b, geo[k, 0], geo[k, 1], geo[k, 2], geo[k, 3],
                                      geo[k, 4], geo[k, 5])
         if un_now.min() >= 0.0:
             return False
@@ -187,7 +265,7 @@ def _resolve(t, pos, ang, vel, om, inv_mass, inv_inertia, cv_body, cv_local, cv_
             a, b = cv_body[c], cp_body[c]
             rax, ray, rbx, rby, nx, ny = (geo[k, 0], geo[k, 1], geo[k, 2], geo[k, 3], geo[k, 4],
                                           geo[k, 5])
-            ut, un = _relative(vel, om, a, b, rax, ray, rbx, rby, nx, ny)
+            ut, un = _relative(now, a, b, rax, ray, rbx, rby, nx, ny)
             if un >= 0.0:
                 continue
             micro = -un <= micro_speed
@@ -256,16 +334,21 @@ def _reach_step(h, speed, g, reach, h_min):
 
 
 @jit
-def run_steps(t, t_stop, pos, ang, vel, om, kind, drive_row, drives, drive_speed, gravity,
-         inv_mass, inv_inertia, radius, cv_body, cv_local, cv_sides, cp_body, cp_start, cp_end,
-         c_mu_s, c_mu_d, c_e, verts, normals, internal, anchor_pos, anchor_ang, margin, width,
-         h_max, eps, eps_pen, v_sep, micro_speed, friction_on, law, max_sweeps, max_toi, h_min,
-         acc_n, acc_t, acc_geo, counters, fout):
-    """Collisions and free flight from t to t_stop (state arrays in place); returns
-    (t, DONE) or (t, REFRESH) when a dynamic body has moved half the candidate margin."""
+def run_steps(t, t_stop, now, bodies, shapes, drives, drive_speed, prm, cand, out):
+    """Collisions and free flight from t to t_stop (the state ``now`` in place, drives at up
+    to ``drive_speed``); returns (t, DONE) or (t, REFRESH) when a dynamic body has moved half
+    the candidate margin."""
+    pos, ang, vel, om = now
+    kind, gravity, radius = bodies.kind, bodies.gravity, bodies.radius_m
+    cv_body, cp_body = cand.body, cand.piece_body
+    anchor_pos, anchor_ang = cand.anchor_pos, cand.anchor_ang
+    margin, width, h_max = prm.margin_m, prm.width_m, prm.h_max
+    eps, eps_pen, max_toi, h_min = prm.eps, prm.eps_pen, prm.max_toi, prm.h_min
+    counters, fout = out.counters, out.fout
     n = kind.shape[0]
     nc = cv_body.shape[0]
-    pos1, ang1, vel1, om1 = pos.copy(), ang.copy(), vel.copy(), om.copy()
+    work = Motion(pos.copy(), ang.copy(), vel.copy(), om.copy())
+    pos1, ang1, vel1, om1 = work
     g0 = np.empty(nc)
     u0 = np.empty(nc)
     floor = np.empty(nc)
@@ -273,11 +356,7 @@ def run_steps(t, t_stop, pos, ang, vel, om, kind, drive_row, drives, drive_speed
     # a step must still move the clock at late times
     h_floor = max(h_min, 4.0 * np.finfo(np.float64).eps * abs(t_stop))
     while True:
-        capped = _resolve(t, pos, ang, vel, om, inv_mass, inv_inertia, cv_body, cv_local,
-                          cv_sides, cp_body,
-                 cp_start, cp_end, c_mu_s, c_mu_d, c_e, verts, normals, internal, eps, v_sep,
-                 micro_speed, friction_on, law, max_sweeps, acc_n, acc_t, acc_geo, counters,
-                 fout)
+        capped = _resolve(t, now, bodies, shapes, cand, prm, out)
         if t >= t_stop:
             return t, DONE
         moved = speed = 0.0
@@ -297,16 +376,14 @@ def run_steps(t, t_stop, pos, ang, vel, om, kind, drive_row, drives, drive_speed
         h = _reach_step(h, speed + drive_speed, g, 0.25 * width, h_floor)
         for c in range(nc):
             a, b = cv_body[c], cp_body[c]
-            px, py, gap, face = _corner_gap(pos, ang, a, cv_local[c], cv_sides[c], b,
-                                            cp_start[c], cp_end[c], verts, normals, internal,
-                                            eps)
+            px, py, gap, face = _corner_gap(now, shapes, cand, c, eps)
             g0[c] = gap
             if face < 0:
                 u0[c] = 0.0
                 floor[c] = -math.inf
                 continue
-            nx, ny = _face_frame(ang, b, normals, face)
-            u0[c] = _gap_rate(pos, ang, vel, om, a, b, px, py, nx, ny)
+            nx, ny = _face_frame(now, shapes, b, face)
+            u0[c] = _gap_rate(now, a, b, px, py, nx, ny)
             floor[c] = min(-eps_pen, gap)
             if capped and u0[c] < 0.0 and -_CAPPED_SINK * eps_pen < gap <= eps:
                 # An approach the capped sweeps left may sink the gap one more band: held at
@@ -316,14 +393,11 @@ def run_steps(t, t_stop, pos, ang, vel, om, kind, drive_row, drives, drive_speed
                 # sink a part millimetres; there, short steps give them more sweeps.
                 floor[c] -= eps_pen
         for it in range(max_toi):
-            _poses(t + h, h, kind, drive_row, drives, gravity, pos, ang, vel, om, pos1, ang1,
-                   vel1, om1)
+            _poses(t + h, h, bodies, drives, now, work)
             h_new = h
             ok = True
             for c in range(nc):
-                _, _, gh, face = _corner_gap(pos1, ang1, cv_body[c], cv_local[c], cv_sides[c],
-                                             cp_body[c], cp_start[c], cp_end[c], verts,
-                                             normals, internal, eps)
+                _, _, gh, face = _corner_gap(work, shapes, cand, c, eps)
                 if face >= 0 and gh < floor[c]:
                     ok = False
                     h_new = min(h_new, _toi(g0[c], u0[c], gh, h, center, floor[c]))
@@ -334,8 +408,7 @@ def run_steps(t, t_stop, pos, ang, vel, om, kind, drive_row, drives, drive_speed
                 h_new = 0.5 * h       # the quadratic model does not hold: bisect
             if h_new <= h_floor or it == max_toi - 1:
                 h = max(h_new, h_floor)
-                _poses(t + h, h, kind, drive_row, drives, gravity, pos, ang, vel, om, pos1,
-                       ang1, vel1, om1)
+                _poses(t + h, h, bodies, drives, now, work)
                 counters[C_TOI_GIVE_UP] += 1
                 fout[F_GIVE_UP_T] = t
                 break
@@ -348,8 +421,6 @@ def run_steps(t, t_stop, pos, ang, vel, om, kind, drive_row, drives, drive_speed
         om[:] = om1
         counters[C_STEPS] += 1
         for c in range(nc):
-            _, _, gap, face = _corner_gap(pos, ang, cv_body[c], cv_local[c], cv_sides[c],
-                                          cp_body[c], cp_start[c], cp_end[c], verts, normals,
-                                          internal, eps)
+            _, _, gap, face = _corner_gap(now, shapes, cand, c, eps)
             if face >= 0 and -gap > fout[F_MAX_PEN]:
                 fout[F_MAX_PEN] = -gap

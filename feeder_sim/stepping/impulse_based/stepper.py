@@ -113,17 +113,22 @@ from feeder_sim.contact.candidates import corner_piece_candidates
 from feeder_sim.contact.collision import Contacts
 from feeder_sim.contact.dynamics import contact_set, MAX_MESSAGES
 from feeder_sim.contact.routh import collide, CollisionResult, LAWS
-from feeder_sim.model.world import DRIVEN, FIXED, MOVING, State
+from feeder_sim.model.arrays import body_arrays, shape_arrays
+from feeder_sim.model.world import State
 from feeder_sim.stepping.impulse_based._kernels import (
     C_COLLISIONS,
     C_STEPS,
     C_SWEEP_CAP,
     C_TOI_GIVE_UP,
+    Candidates,
     COUNTER_NAMES,
     DONE,
     F_CAP_T,
     F_GIVE_UP_T,
     F_MAX_PEN,
+    ImpulseParams,
+    Motion,
+    Outputs,
     run_steps,
 )
 from feeder_sim.stepping.protocol import CheckedSettings, StepContacts, StepperBase
@@ -169,9 +174,7 @@ class _Candidates:
 
     vertex: np.ndarray      # (c,) global vertex index
     piece: np.ndarray       # (c,) piece index
-    arrays: tuple           # kernel arrays (see ImpulseBased._find_candidates)
-    anchor_pos: np.ndarray  # (n, 2) positions at detection
-    anchor_ang: np.ndarray  # (n,)
+    arrays: Candidates      # the kernels' arrays, with the poses at detection
     stroke: np.ndarray      # (n,) widening of driven bodies' boxes used
 
 
@@ -202,22 +205,16 @@ class ImpulseBased(StepperBase):
         self.max_step_s = min(spec.time_step, st.max_step_s or math.inf)
         sh = world.shapes
         topo = sh.derived
-        self._verts = np.ascontiguousarray(sh.vertices, dtype=float)
-        self._normals = np.ascontiguousarray(sh.normals, dtype=float)
-        self._internal = np.ascontiguousarray(topo.edge_internal, dtype=np.bool_)
+        self._bodies = body_arrays(world)
+        self._shapes = shape_arrays(world)
+        self._verts = self._shapes.vertices
         self._vertex_body = topo.vertex_body.astype(np.int64)
         self._vertex_piece = topo.vertex_piece.astype(np.int64)
         self._active = np.flatnonzero(topo.vertex_active)
         self._piece_start = sh.piece_start.astype(np.int64)
         self._piece_body = sh.piece_body.astype(np.int64)
         self._max_piece = int(np.max(np.diff(self._piece_start), initial=3))
-        dyn = world.dynamic
-        self._kind = np.where(dyn, MOVING, FIXED).astype(np.int64)
-        self._kind[world.driven] = DRIVEN
-        self._drive_row = np.full(world.n, -1, np.int64)
-        self._drive_row[world.driven] = np.arange(len(world.driven))
-        self._radius = world.radius.astype(float)
-        dyn_radius = self._radius[dyn]
+        dyn_radius = self._bodies.radius_m[world.dynamic]
         small = float(dyn_radius.min()) if dyn_radius.size else 1e-2
         self.margin_m = (st.candidate_margin_m if st.candidate_margin_m is not None
                          else max(0.1 * small, 100.0 * st.envelope_m))
@@ -244,10 +241,10 @@ class ImpulseBased(StepperBase):
         vb, ps, pb = self._vertex_body, self._piece_start, self._piece_body
         if len(pb) < 2:
             none = np.zeros(0, np.int64)
-            arrays = (none, np.zeros((0, 2)), np.zeros((0, 4)), none, none, none,
-                      *(np.zeros(0),) * 3)
-            return _Candidates(none, none, arrays, state.position.copy(), state.angle.copy(),
-                               stroke.copy())
+            arrays = Candidates(none, np.zeros((0, 2)), np.zeros((0, 4)), none, none, none,
+                                *(np.zeros(0),) * 3, state.position.copy(),
+                                state.angle.copy())
+            return _Candidates(none, none, arrays, stroke.copy())
         margin = self.margin_m
         cand = corner_piece_candidates(self.world, state, self._active, margin, stroke)
         vertex, piece, wx, wy, lo, hi = cand
@@ -265,11 +262,11 @@ class ImpulseBased(StepperBase):
         sides = np.concatenate([(v[prev] - v[vertex]) / topo.edge_length[prev, None],
                                 (v[topo.next_vertex[vertex]] - v[vertex])
                                 / topo.edge_length[vertex, None]], axis=1)
-        arrays = (a, np.ascontiguousarray(v[vertex]), sides, b, ps[piece], ps[piece + 1],
-                  np.ascontiguousarray(mu_s), np.ascontiguousarray(mu_d),
-                  np.ascontiguousarray(e))
-        return _Candidates(vertex, piece, arrays, state.position.copy(), state.angle.copy(),
-                           stroke.copy())
+        arrays = Candidates(a, np.ascontiguousarray(v[vertex]), sides, b, ps[piece],
+                            ps[piece + 1], np.ascontiguousarray(mu_s),
+                            np.ascontiguousarray(mu_d), np.ascontiguousarray(e),
+                            state.position.copy(), state.angle.copy())
+        return _Candidates(vertex, piece, arrays, stroke.copy())
 
     # ------------------------------------------------------------------ stepping
     def advance(self, state: State, t_end: float) -> list[StepContacts]:
@@ -284,11 +281,17 @@ class ImpulseBased(StepperBase):
         stroke[w.driven] = drives.stroke_m()
         if self._cand is not None and np.any(stroke > self._cand.stroke):
             self._cand = None      # a drive command widened the stroke
-        law = LAWS[self.spec.restitution_law]
+        prm = ImpulseParams(
+            float(self.margin_m), float(self._width), float(self.max_step_s),
+            float(self.envelope_m), float(self.penetration_m), float(self.bounce_speed_mps),
+            float(st.micro_speed_factor * self.bounce_speed_mps),
+            bool(self.spec.friction_impulse), int(LAWS[self.spec.restitution_law]),
+            int(st.max_sweeps), int(st.max_toi_iterations), float(st.min_step_s))
         pos = np.ascontiguousarray(state.position, dtype=float)
         ang = np.ascontiguousarray(state.angle, dtype=float)
         vel = np.ascontiguousarray(state.velocity, dtype=float)
         om = np.ascontiguousarray(state.omega, dtype=float)
+        now = Motion(pos, ang, vel, om)
         before = self.counters.copy()
         t = state.t
         while True:
@@ -300,14 +303,9 @@ class ImpulseBased(StepperBase):
             acc_n = np.zeros((nc, self._max_piece))
             acc_t = np.zeros((nc, self._max_piece))
             acc_geo = np.zeros((nc, self._max_piece, 5))
-            t, code = run_steps(
-                t, t_end, pos, ang, vel, om, self._kind, self._drive_row, drives, drive_speed,
-                w.gravity, w.inv_mass, w.inv_inertia, self._radius, *cand.arrays, self._verts,
-                self._normals, self._internal, cand.anchor_pos, cand.anchor_ang, self.margin_m,
-                self._width, self.max_step_s, self.envelope_m, self.penetration_m,
-                self.bounce_speed_mps, st.micro_speed_factor * self.bounce_speed_mps,
-                bool(self.spec.friction_impulse), law, st.max_sweeps, st.max_toi_iterations,
-                st.min_step_s, acc_n, acc_t, acc_geo, self.counters, self._fout)
+            out_arrays = Outputs(acc_n, acc_t, acc_geo, self.counters, self._fout)
+            t, code = run_steps(t, t_end, now, self._bodies, self._shapes, drives, drive_speed,
+                                prm, cand.arrays, out_arrays)
             report = self._report(cand, acc_n, acc_t, acc_geo, State(t, pos, ang, vel, om))
             if report is not None:
                 out.append(report)

@@ -79,6 +79,7 @@ from feeder_sim.contact._island_kernels import (
     speed_bounds_inline,
     stop_within_step_inline,
 )
+from feeder_sim.model.arrays import BodyArrays, ShapeArrays
 from feeder_sim.model.vibration import DriveSegments, segment_motion
 
 # what advance returns
@@ -92,45 +93,6 @@ INT_COUNTERS = ('steps', 'lcp_solves', 'trivial_solves', 'pivots', 'unconverged'
 # float maxima (``floats``)
 F_MAX_RESIDUAL, F_MAX_PENETRATION, F_MAX_PGS_VRES = range(3)
 FLOAT_MAXIMA = ('max_residual', 'max_penetration_m', 'max_pgs_velocity_residual_mps')
-
-
-class StepBodies(NamedTuple):
-    """Per-body constants of a world, in the kernel's terms."""
-
-    dynamic: np.ndarray        # (n,) bool
-    dyn_idx: np.ndarray        # (nm,) indices of dynamic bodies
-    driven_idx: np.ndarray     # (nd,) indices of driven bodies, the drive table's row order
-    inv_mass: np.ndarray       # (n,) 1/kg
-    inv_inertia: np.ndarray    # (n,) 1/(kg m^2)
-    radius_m: np.ndarray       # (n,) largest distance of a vertex from the centre of mass
-    mu_static: np.ndarray      # (n,)
-    mu_dynamic: np.ndarray     # (n,)
-    restitution: np.ndarray    # (n,)
-    gravity: np.ndarray        # (2,) m/s^2
-    g: float                   # |gravity|
-
-
-class StepShapes(NamedTuple):
-    """The shape set and its topology (``ShapeSet``, ``ShapeTopology``)."""
-
-    vertices: np.ndarray
-    normals: np.ndarray
-    piece_start: np.ndarray
-    piece_body: np.ndarray
-    piece_radius: np.ndarray
-    vertex_body: np.ndarray
-    vertex_piece: np.ndarray
-    next_vertex: np.ndarray
-    prev_vertex: np.ndarray
-    edge_length: np.ndarray
-    piece_width: np.ndarray
-    vertex_active: np.ndarray
-    edge_internal: np.ndarray
-    cover_start: np.ndarray
-    cover_lo: np.ndarray
-    cover_hi: np.ndarray
-    vertex_canon: np.ndarray
-    n_piece_bodies: int        # one more than the largest body index owning a piece
 
 
 class StepSettings(NamedTuple):
@@ -1181,12 +1143,12 @@ def advance(t, t_end, pos, ang, vel, om, bodies, shapes, drives, st, warm, appro
     warm = Warm(borrow(warm.keys), borrow(warm.p_n), borrow(warm.p_t), borrow(warm.state),
                 borrow(warm.projection_state))
     approach = Approach(borrow(approach.lo), borrow(approach.hi), borrow(approach.vel))
-    bodies = StepBodies(
+    bodies = BodyArrays(
         borrow(bodies.dynamic), borrow(bodies.dyn_idx), borrow(bodies.driven_idx),
         borrow(bodies.inv_mass), borrow(bodies.inv_inertia), borrow(bodies.radius_m),
         borrow(bodies.mu_static), borrow(bodies.mu_dynamic), borrow(bodies.restitution),
-        borrow(bodies.gravity), bodies.g)
-    shapes = StepShapes(
+        borrow(bodies.gravity), bodies.g, borrow(bodies.kind), borrow(bodies.drive_row))
+    shapes = ShapeArrays(
         borrow(shapes.vertices), borrow(shapes.normals), borrow(shapes.piece_start),
         borrow(shapes.piece_body), borrow(shapes.piece_radius), borrow(shapes.vertex_body),
         borrow(shapes.vertex_piece), borrow(shapes.next_vertex), borrow(shapes.prev_vertex),

@@ -154,6 +154,7 @@ from feeder_sim.contact.dynamics import (
     second_pass,
     SolverStats,
 )
+from feeder_sim.model.arrays import body_arrays, shape_arrays
 from feeder_sim.model.world import State, World
 from feeder_sim.stepping.protocol import CheckedSettings, StepContacts, StepperBase
 from feeder_sim.stepping.time_stepping import _kernels as TK
@@ -430,7 +431,7 @@ class TimeStepper(StepperBase):
         # step: its Newton rows bounce the speed it came in with
         self._approach: dict[tuple[int, int], np.ndarray] = {}
         self._geo: _IslandGeometry | None = None
-        self._compiled = self._compiled_world()
+        self._compiled = (body_arrays(world), shape_arrays(world))
         self._reports = TK.new_reports(256)
         # the compiled step's counters, maxima and messages, reused from call to call
         self._io = (np.zeros(len(TK.INT_COUNTERS), np.int64), np.zeros(len(TK.FLOAT_MAXIMA)),
@@ -442,27 +443,6 @@ class TimeStepper(StepperBase):
         # while the next step runs in the other); grown when a step needed more
         size = _ARENA_BYTES + _ARENA_BYTES_PER_VERTEX * len(self.world.shapes.vertices)
         self._arenas = (new_arena(size), new_arena(size))
-
-    def _compiled_world(self) -> tuple[TK.StepBodies, TK.StepShapes]:
-        """The world's constants as the compiled step takes them."""
-        w = self.world
-        shapes, topo = w.shapes, w.shapes.derived
-        def floats(x: np.ndarray) -> np.ndarray:
-            return np.ascontiguousarray(x, dtype=float)
-
-        bodies = TK.StepBodies(
-            np.ascontiguousarray(self._dyn, dtype=bool), self._dyn_idx.astype(np.int64),
-            self._driven.astype(np.int64), floats(w.inv_mass), floats(w.inv_inertia),
-            floats(self._radius), floats(w.mu_static), floats(w.mu_dynamic),
-            floats(w.restitution), floats(w.gravity), self._g)
-        n_piece_bodies = int(shapes.piece_body.max()) + 1 if len(shapes.piece_body) else 0
-        shape_args = TK.StepShapes(
-            shapes.vertices, shapes.normals, shapes.piece_start, shapes.piece_body,
-            shapes.radius, topo.vertex_body, topo.vertex_piece, topo.next_vertex,
-            topo.prev_vertex, topo.edge_length, topo.piece_width, topo.vertex_active,
-            topo.edge_internal, topo.cover_start, topo.cover_lo, topo.cover_hi,
-            topo.vertex_canon, n_piece_bodies)
-        return bodies, shape_args
 
     def _compiled_settings(self) -> TK.StepSettings:
         """The settings as the compiled step takes them, made again whenever the settings or
