@@ -7,7 +7,7 @@ Who calls what: ``dynamics.islands`` and ``TimeStepper`` -> ``island_groups``; `
 projection's normal-row problems, rather than a kernel of its own that would compile
 ``dantzig`` a second time), ``solve_pgs``, ``apply_impulses``, ``feature_gaps``. Each kernel
 reproduces the numpy code in :mod:`.dynamics` / ``time_stepping`` it replaces with the same
-arithmetic where that code is the reference (``test/test_pile.py`` holds them together).
+arithmetic where that code is the reference (``test/stepping/test_pile.py`` holds them together).
 
 Each kernel takes a scratch arena first (``ar``, :mod:`feeder_sim.compiled.arena`): the
 compiled step passes its own, calls from Python ``heap_state()``, whose arrays are ordinary

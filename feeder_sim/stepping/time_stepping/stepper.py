@@ -98,7 +98,7 @@ Compiled paths and their references
 -----------------------------------
 ``TimeStepper.advance`` runs whole steps in ``_kernels.advance``, many per call,
 with the operations of ``TimeStepper.step`` in the same order: the same bits, frames, counters
-and contact reports (test/test_pile.py, test/test_fingerprint.py). ``step`` stays as the
+and contact reports (test/stepping/test_pile.py, test/test_fingerprint.py). ``step`` stays as the
 reference and takes the steps the kernel hands back: a Dantzig answer missing ``lcp_tol``
 (the reference solves it again through ``lcp.solve``'s ladder and counts the fallback),
 non-finite bounds (its error). The velocities speculative rows held back for restitution
@@ -116,7 +116,7 @@ is ``_island_kernels.contact_rows``, with the bits of the numpy code it replaced
 normal-row LCPs together with the compiled Dantzig (``_island_kernels.solve_small``),
 ``lcp.solve`` only for an island it cannot solve, where ``_project_reference`` solves each
 island by ``lcp.solve`` with numpy Jacobians (same problems and pivots, positions within
-~1e-18 m: the sums run in another order). test/test_pile.py checks both while a pile falls and
+~1e-18 m: the sums run in another order). test/stepping/test_pile.py checks both while a pile falls and
 settles, and the PGS sweep against a plain transcription of it.
 """
 
@@ -741,7 +741,7 @@ class TimeStepper(StepperBase):
 
     def _project_reference(self, cs: ContactSet, state: State, mask: np.ndarray) -> None:
         """``_project`` island by island through ``lcp.solve`` and numpy Jacobians: the
-        reference the compiled path is checked against (test/test_pile.py)."""
+        reference the compiled path is checked against (test/stepping/test_pile.py)."""
         w, st = self.world, self.settings
         gap, _ = evaluate_gaps(w.shapes, cs.contacts, state.position, state.angle)
         deep = (gap < -st.projection_slop_m) & mask
@@ -951,7 +951,7 @@ class TimeStepper(StepperBase):
     def _contact_rows_reference(self, contacts, groups: tuple, state: State, mid: State,
                                 end: State, h: float, slip_tol: float, reach_m: float) -> tuple:
         """``_contact_rows`` in numpy (``contact_set``, ``contact_velocities``,
-        ``friction_rows``): the reference the kernel is checked against (test/test_pile.py)."""
+        ``friction_rows``): the reference the kernel is checked against (test/stepping/test_pile.py)."""
         w, st = self.world, self.settings
         cs = contact_set(w, mid, contacts)
         # free end-of-step velocities at the midpoint configuration

@@ -25,7 +25,7 @@ from feeder_sim.studies import load_study, run_study
 
 pytestmark = pytest.mark.timeout(300)
 
-STUDIES = Path(__file__).resolve().parents[1] / 'config' / 'studies'
+STUDIES = Path(__file__).resolve().parents[2] / 'config' / 'studies'
 
 
 # --- the rule ------------------------------------------------------------------------------

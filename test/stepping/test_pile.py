@@ -578,7 +578,7 @@ def test_projection_of_a_wedged_cup_stays_within_its_overlap():
 
     from feeder_sim.model.scene import parse_scene
 
-    here = pathlib.Path(__file__).parent / 'data'
+    here = pathlib.Path(__file__).resolve().parents[1] / 'data'
     sim = Simulator(parse_scene(yaml.safe_load((here / 'wedged_cups.yaml').read_text())))
     st = sim.state
     st.t = 1.0657999999999153

@@ -37,7 +37,7 @@ from feeder_sim.model.scene import (
 from feeder_sim.simulator import Simulator
 from feeder_sim.stepping import EventSettings, ImpulseSettings, TimeStepSettings
 
-CONFIG = Path(__file__).resolve().parents[1] / 'config'
+CONFIG = Path(__file__).resolve().parents[2] / 'config'
 SCENES = {name: yaml.safe_load((CONFIG / f'{name}.yaml').read_text())
           for name in shipped_scenes()}
 

@@ -239,7 +239,7 @@ def test_each_shipped_plan_is_what_the_default_run_compiles(method):
 
 
 def test_feeder_sim_compile_leaves_nothing_for_the_first_run(tmp_path):
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     env = probe_env(root, tmp_path / 'cache')
 
     def cli(*args: str) -> subprocess.CompletedProcess:

@@ -26,7 +26,7 @@ from feeder_sim.output.recording import (
     TOPICS,
 )
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 T0 = 3 * 1_000_000_000 + 7  # odd nanoseconds on purpose
 DT = 10_000_000
 N_FRAMES = 20

@@ -19,7 +19,7 @@ from feeder_sim.model.scene import load_scene
 from feeder_sim.run import run
 from feeder_sim.simulator import Simulator
 
-DATA = Path(__file__).parent / 'data'
+DATA = Path(__file__).resolve().parents[1] / 'data'
 
 
 @pytest.fixture(scope='module')
@@ -158,7 +158,7 @@ def foxglove_decoders() -> Path:
         (where / 'package.json').write_text(json.dumps(manifest))
         subprocess.run(['npm', 'install', '--no-audit', '--no-fund', '--silent'], cwd=where,
                        check=True, capture_output=True, timeout=300)
-    shutil.copy(Path(__file__).parent / 'js' / 'decode_mcap.mjs', where / 'decode_mcap.mjs')
+    shutil.copy(Path(__file__).resolve().parents[1] / 'js' / 'decode_mcap.mjs', where / 'decode_mcap.mjs')
     return where
 
 

@@ -18,7 +18,7 @@ from feeder_sim.output.sensors import SensorBank
 from feeder_sim.run import run
 from feeder_sim.simulator import Simulator
 
-QUEUE_CELL = Path(__file__).parent.parent / 'config' / 'queue_cell.yaml'
+QUEUE_CELL = Path(__file__).resolve().parents[2] / 'config' / 'queue_cell.yaml'
 HALF = np.array([0.01, 0.005])                       # the box's half sides, m
 BOX = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * HALF
 
