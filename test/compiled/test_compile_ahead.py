@@ -15,6 +15,7 @@ import subprocess
 import sys
 import time
 
+from paths import REPO
 import pytest
 from test_kernel_cache import copy_package, NOTICE, probe_env, run
 
@@ -239,7 +240,7 @@ def test_each_shipped_plan_is_what_the_default_run_compiles(method):
 
 
 def test_feeder_sim_compile_leaves_nothing_for_the_first_run(tmp_path):
-    root = Path(__file__).resolve().parents[2]
+    root = REPO
     env = probe_env(root, tmp_path / 'cache')
 
     def cli(*args: str) -> subprocess.CompletedProcess:

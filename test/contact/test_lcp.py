@@ -3,10 +3,10 @@ problems, degenerate input and the fallback ladder."""
 
 import json
 import math
-from pathlib import Path
 import time
 
 import numpy as np
+from paths import DATA
 import pytest
 
 from feeder_sim.contact.lcp import FrictionalLCP, LCPResult, residual, solve
@@ -720,7 +720,7 @@ def test_an_answer_to_a_wedged_cup_does_not_hide_its_velocity_error_in_its_size(
     # warm-start the next steps, which threw three cups out at 16 km/s at t = 23.5 s. The
     # answer taken must meet the problem's own velocity scale (max |b| = 11 mm/s); PGS gets
     # 2.4e-5 N s at most.
-    data = json.loads((Path(__file__).resolve().parents[1] / 'data' / 'wedged_cup_lcp.json').read_text())
+    data = json.loads((DATA / 'wedged_cup_lcp.json').read_text())
     problem = FrictionalLCP(np.array(data['A']), np.array(data['b']),
                             np.array(data['normal_of']), np.array(data['mu_lo']),
                             np.array(data['mu_hi']))

@@ -9,8 +9,8 @@ import csv
 import dataclasses
 import json
 import math
-from pathlib import Path
 
+from paths import CONFIG
 import pytest
 
 from feeder_sim.cli import main
@@ -25,7 +25,7 @@ from feeder_sim.studies import load_study, run_study
 
 pytestmark = pytest.mark.timeout(300)
 
-STUDIES = Path(__file__).resolve().parents[2] / 'config' / 'studies'
+STUDIES = CONFIG / 'studies'
 
 
 # --- the rule ------------------------------------------------------------------------------

@@ -15,6 +15,7 @@ from mcap.records import Schema
 from mcap_ros2.decoder import DecoderFactory
 from mcap_ros2.reader import read_ros2_messages
 import numpy as np
+from paths import REPO
 import pytest
 
 from feeder_sim.output import msgdefs
@@ -26,7 +27,6 @@ from feeder_sim.output.recording import (
     TOPICS,
 )
 
-REPO = Path(__file__).resolve().parents[2]
 T0 = 3 * 1_000_000_000 + 7  # odd nanoseconds on purpose
 DT = 10_000_000
 N_FRAMES = 20

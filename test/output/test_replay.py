@@ -11,6 +11,7 @@ from mcap.writer import Writer
 from mcap_ros2.reader import read_ros2_messages
 from mcap_ros2.writer import Writer as Ros2Writer
 import numpy as np
+from paths import DATA
 import pytest
 import rerun as rr
 from rerun.chunk import RrdReader
@@ -482,7 +483,7 @@ def test_parts_that_come_and_go_are_drawn_with_their_own_outlines(tmp_path):
     # a fed track: boxes added every 0.5 s and taken away 0.15 m on; each frame draws the
     # parts of that frame, named as track_state names them, each at its recorded pose
     log = tmp_path / 'fed.mcap'
-    run(Simulator(str(Path(__file__).resolve().parents[1] / 'data' / 'fed_track.yaml')), 3.0, record=log)
+    run(Simulator(str(DATA / 'fed_track.yaml')), 3.0, record=log)
     rrd = replay(log, tmp_path / 'fed.rrd', spawn=False)
     names = {stamp_ns(m): list(m.ros_msg.name)
              for m in read_ros2_messages(log, topics=['/feeder_sim/track_state'])}
@@ -507,7 +508,7 @@ def test_sensors_are_plotted_and_each_passing_part_is_a_line(tmp_path):
     # each count and the beam's state at the frames' simulated times and writes one line per
     # part that passes the camera
     log = tmp_path / 'slide.mcap'
-    run(Simulator(str(Path(__file__).resolve().parents[1] / 'data' / 'sensor_slide.yaml')), 2.0, record=log)
+    run(Simulator(str(DATA / 'sensor_slide.yaml')), 2.0, record=log)
     rrd = replay(log, tmp_path / 'slide.rrd', spawn=False)
     counts = [m.ros_msg.data for m in messages(log, '/feeder_sim/sensors/beam/count')]
     t, values = temporal(rrd, '/plots/sensors/beam/count', 'Scalars:scalars')

@@ -5,11 +5,11 @@ to a part moving in a straight line (against the analytic crossing of the segmen
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 import numpy as np
+from paths import CONFIG
 import yaml
 
 from feeder_sim.model.scene import SensorSpec
@@ -18,7 +18,7 @@ from feeder_sim.output.sensors import SensorBank
 from feeder_sim.run import run
 from feeder_sim.simulator import Simulator
 
-QUEUE_CELL = Path(__file__).resolve().parents[2] / 'config' / 'queue_cell.yaml'
+QUEUE_CELL = CONFIG / 'queue_cell.yaml'
 HALF = np.array([0.01, 0.005])                       # the box's half sides, m
 BOX = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * HALF
 

@@ -9,6 +9,7 @@ from pathlib import Path
 
 from mcap_ros2.reader import read_ros2_messages
 import numpy as np
+from paths import DATA
 import pytest
 import yaml
 
@@ -17,7 +18,7 @@ from feeder_sim.output.sensors import segment_cuts_polygon, SensorBank
 from feeder_sim.run import run
 from feeder_sim.simulator import Simulator
 
-SCENE = Path(__file__).resolve().parents[1] / 'data' / 'sensor_slide.yaml'
+SCENE = DATA / 'sensor_slide.yaml'
 SPEED = 0.1            # m/s, both boxes, frictionless floor
 BEAM_X, CAMERA_X = 0.05, 0.1
 START_X = {'flat_box': 0.0, 'upright_box': -0.05}

@@ -11,6 +11,7 @@ import sys
 
 from mcap_ros2.reader import read_ros2_messages
 import numpy as np
+from paths import DATA, TESTS
 import pytest
 from rerun.chunk import RrdReader
 from visualization_msgs.msg import Marker
@@ -18,8 +19,6 @@ from visualization_msgs.msg import Marker
 from feeder_sim.model.scene import load_scene
 from feeder_sim.run import run
 from feeder_sim.simulator import Simulator
-
-DATA = Path(__file__).resolve().parents[1] / 'data'
 
 
 @pytest.fixture(scope='module')
@@ -158,7 +157,7 @@ def foxglove_decoders() -> Path:
         (where / 'package.json').write_text(json.dumps(manifest))
         subprocess.run(['npm', 'install', '--no-audit', '--no-fund', '--silent'], cwd=where,
                        check=True, capture_output=True, timeout=300)
-    shutil.copy(Path(__file__).resolve().parents[1] / 'js' / 'decode_mcap.mjs', where / 'decode_mcap.mjs')
+    shutil.copy(TESTS / 'js' / 'decode_mcap.mjs', where / 'decode_mcap.mjs')
     return where
 
 

@@ -18,6 +18,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseArray
 from mcap_ros2.reader import read_ros2_messages
 import numpy as np
+from paths import DATA, REPO
 import pytest
 from rcl_interfaces.srv import SetParameters
 import rclpy
@@ -656,7 +657,7 @@ def test_a_fed_scene_publishes_the_parts_as_they_come_and_go(graph):
     # sources add a box every 0.5 s, a sink takes them away 0.15 m on: the poses' length
     # follows, track_state names them, the node keeps going and deletes a leaving part's
     # markers
-    scene = Path(__file__).resolve().parents[1] / 'data' / 'fed_track.yaml'
+    scene = DATA / 'fed_track.yaml'
     track = graph.listen(JointState, '/feeder_sim/track_state', 10_000)
     # deep queues: frames run as fast as possible, a burst between two spins must not drop
     # the message that deletes a part's markers
@@ -686,7 +687,7 @@ def test_sensors_over_dds_match_the_crossings_of_the_published_poses(graph):
     # x = 0.1 m (test/data/sensor_slide.yaml): every frame's count is the number of pose
     # crossings so far, the beam is blocked while an outline overlaps it, and each part
     # that passes the inspection line is one message naming its orientation
-    scene = Path(__file__).resolve().parents[1] / 'data' / 'sensor_slide.yaml'
+    scene = DATA / 'sensor_slide.yaml'
     deep = QoSProfile(depth=10_000, reliability=ReliabilityPolicy.RELIABLE)
     poses = graph.listen(PoseArray, '/feeder_sim/part_poses', deep)
     blocked = graph.listen(Bool, '/feeder_sim/sensors/beam/blocked', deep)
@@ -807,7 +808,7 @@ def test_the_example_controller_keeps_the_queue_between_its_thresholds_for_a_min
     # as fast as it can may be passed by its publisher's history).
     import importlib.util
     spec = importlib.util.spec_from_file_location(
-        'queue_controller', Path(__file__).resolve().parents[2] / 'examples' / 'queue_controller.py')
+        'queue_controller', REPO / 'examples' / 'queue_controller.py')
     example = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(example)
     log = tmp_path / 'cell.mcap'

@@ -21,6 +21,7 @@ from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 from mcap_ros2.reader import read_ros2_messages
 import numpy as np
+from paths import REPO
 import pytest
 import rclpy
 from rclpy.context import Context
@@ -30,7 +31,6 @@ from sensor_msgs.msg import JointState
 
 pytestmark = pytest.mark.timeout(300)
 
-REPO = Path(__file__).resolve().parents[2]
 VENV_BIN = Path(sys.executable).parent
 
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
-from pathlib import Path
 import random
 import subprocess
 import sys
@@ -21,6 +20,7 @@ import time
 from hypothesis import given, HealthCheck, settings
 from hypothesis import strategies as st
 import numpy as np
+from paths import CONFIG
 import pytest
 import yaml
 
@@ -37,7 +37,6 @@ from feeder_sim.model.scene import (
 from feeder_sim.simulator import Simulator
 from feeder_sim.stepping import EventSettings, ImpulseSettings, TimeStepSettings
 
-CONFIG = Path(__file__).resolve().parents[2] / 'config'
 SCENES = {name: yaml.safe_load((CONFIG / f'{name}.yaml').read_text())
           for name in shipped_scenes()}
 

@@ -4,9 +4,9 @@ outcomes count them."""
 
 import copy
 import math
-from pathlib import Path
 
 import numpy as np
+from paths import DATA
 import pytest
 import yaml
 
@@ -14,7 +14,7 @@ from feeder_sim.model.scene import parse_scene, SceneError
 from feeder_sim.run import run
 from feeder_sim.simulator import Simulator
 
-FED = yaml.safe_load((Path(__file__).resolve().parents[1] / 'data' / 'fed_track.yaml').read_text())
+FED = yaml.safe_load((DATA / 'fed_track.yaml').read_text())
 
 # parts released 1 m up in free space, taken away once they fall below 0.9 m: never in
 # each other's way, so every arrival is added

@@ -17,6 +17,7 @@ import math
 from hypothesis import given, settings
 from hypothesis import strategies as hs
 import numpy as np
+from paths import DATA
 import pytest
 
 from feeder_sim.compiled.arena import heap_state
@@ -572,13 +573,12 @@ def test_projection_of_a_wedged_cup_stays_within_its_overlap():
     rows are nearly dependent and the linearised projection moved the lower cup 39 mm and
     415 deg in one step. No point of a body may move more than ``projection_reach`` times its
     island's summed overlap."""
-    import pathlib
 
     import yaml
 
     from feeder_sim.model.scene import parse_scene
 
-    here = pathlib.Path(__file__).resolve().parents[1] / 'data'
+    here = DATA
     sim = Simulator(parse_scene(yaml.safe_load((here / 'wedged_cups.yaml').read_text())))
     st = sim.state
     st.t = 1.0657999999999153

@@ -15,6 +15,7 @@ import sys
 import time
 
 import numpy as np
+from paths import CONFIG
 import pytest
 from scipy import stats
 import yaml
@@ -358,7 +359,7 @@ def test_the_point_mass_reference_beside_the_measured_speed(tmp_path):
 def test_workers_need_neither_the_scene_file_nor_its_path(tmp_path):
     # a cluster's workers on other machines: the scene travels with the study
     scene = tmp_path / 'scene.yaml'
-    scene.write_text((Path(__file__).resolve().parents[2] / 'config' /
+    scene.write_text((CONFIG /
                       'track_one_box.yaml').read_text())
     study = study_file(tmp_path, {**SMALL, 'scene': 'scene.yaml', 'repeats': 1})
     from feeder_sim.studies import load_study
@@ -371,7 +372,7 @@ def test_workers_need_neither_the_scene_file_nor_its_path(tmp_path):
 
 
 def test_every_shipped_study_is_valid():
-    studies = sorted((Path(__file__).resolve().parents[2] / 'config' / 'studies').glob('*.yaml'))
+    studies = sorted((CONFIG / 'studies').glob('*.yaml'))
     assert len(studies) >= 4
     from feeder_sim.studies import load_study
     for path in studies:

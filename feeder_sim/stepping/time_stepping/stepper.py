@@ -116,8 +116,8 @@ is ``_island_kernels.contact_rows``, with the bits of the numpy code it replaced
 normal-row LCPs together with the compiled Dantzig (``_island_kernels.solve_small``),
 ``lcp.solve`` only for an island it cannot solve, where ``_project_reference`` solves each
 island by ``lcp.solve`` with numpy Jacobians (same problems and pivots, positions within
-~1e-18 m: the sums run in another order). test/stepping/test_pile.py checks both while a pile falls and
-settles, and the PGS sweep against a plain transcription of it.
+~1e-18 m: the sums run in another order). test/stepping/test_pile.py checks both while a pile
+falls and settles, and the PGS sweep against a plain transcription of it.
 """
 
 from __future__ import annotations
@@ -951,7 +951,8 @@ class TimeStepper(StepperBase):
     def _contact_rows_reference(self, contacts, groups: tuple, state: State, mid: State,
                                 end: State, h: float, slip_tol: float, reach_m: float) -> tuple:
         """``_contact_rows`` in numpy (``contact_set``, ``contact_velocities``,
-        ``friction_rows``): the reference the kernel is checked against (test/stepping/test_pile.py)."""
+        ``friction_rows``): the reference the kernel is checked against
+        (test/stepping/test_pile.py)."""
         w, st = self.world, self.settings
         cs = contact_set(w, mid, contacts)
         # free end-of-step velocities at the midpoint configuration
