@@ -27,6 +27,7 @@ numpy reference it ports.
 from __future__ import annotations
 
 from collections.abc import Callable
+import inspect
 import itertools
 import os
 import re
@@ -60,6 +61,32 @@ def inner(fn: Callable | None = None, *, inline: str = 'never',
     compile_ = numba.njit(no_cpython_wrapper=True, inline=inline, forceinline=machine_inline,
                           **JIT_OPTIONS)
     return compile_ if fn is None else compile_(fn)
+
+
+def for_python(kernel: Callable) -> Callable:
+    """The :func:`jit` kernel through which Python calls the :func:`inner` kernel ``kernel``
+    (named ``<name>_inline``): named ``<name>``, of the same parameters, passed on.
+
+    Kernels call the inner form, compiled into each of them (and inlined by LLVM, with
+    ``machine_inline``); a call from Python needs a kernel with a Python wrapper. The
+    wrapper is made here, not written out beside each such kernel, and is compiled (and
+    cached) as if it stood on the inner kernel's line of its module."""
+    py_func = kernel.py_func
+    name = py_func.__name__.removesuffix('_inline')
+    params = inspect.signature(py_func).parameters.values()
+    if name == py_func.__name__ or any(p.kind is not p.POSITIONAL_OR_KEYWORD
+                                       or p.default is not p.empty for p in params):
+        raise TypeError(f'for_python: {py_func.__qualname__} must be named <name>_inline and '
+                        'take positional parameters without defaults')
+    names = ', '.join(p.name for p in params)
+    code = py_func.__code__
+    source = f'def {name}({names}):\n    return kernel({names})\n'
+    source = '\n' * (code.co_firstlineno - 1) + source
+    namespace = {'__name__': py_func.__module__, 'kernel': kernel}
+    exec(compile(source, code.co_filename, 'exec'), namespace)  # noqa: S102 (our own names)
+    wrapper = namespace[name]
+    wrapper.__doc__ = f':func:`{py_func.__name__}` for Python callers.'
+    return jit(wrapper)
 
 
 # The patches' switches: '0' turns one off. DEFER_ENV_VAR '0': every kernel gets machine code

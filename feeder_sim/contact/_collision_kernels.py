@@ -13,7 +13,7 @@ from typing import NamedTuple
 import numpy as np
 
 from feeder_sim.compiled.arena import arange_i, empty_f, empty_i, full_b, full_i, gather
-from feeder_sim.compiled.jit import inner, jit
+from feeder_sim.compiled.jit import for_python, inner
 
 _RUN = 16      # _argsort's insertion-sorted runs
 _RADIX_BITS = 8     # _argsort_int's digit
@@ -212,14 +212,6 @@ class NarrowPhaseTolerances(NamedTuple):
     angle_tol: float         # supporting-vertex slack per unit edge length
 
 
-@jit
-def narrow_phase(ar, w, nw, lo, hi, piece_start, piece_body, take, dyn, piece_width, coord,
-                 radius, active, internal, nxt, prv, elen, tol):
-    """:func:`narrow_phase_inline` for Python callers."""
-    return narrow_phase_inline(ar, w, nw, lo, hi, piece_start, piece_body, take, dyn,
-                               piece_width, coord, radius, active, internal, nxt, prv, elen, tol)
-
-
 @inner(machine_inline=True)
 def narrow_phase_inline(ar, w, nw, lo, hi, piece_start, piece_body, take, dyn, piece_width,
                         coord, radius, active, internal, nxt, prv, elen, tol):
@@ -296,12 +288,7 @@ def narrow_phase_inline(ar, w, nw, lo, hi, piece_start, piece_body, take, dyn, p
     return out_v[:n_out], out_e[:n_out], out_g[:n_out], out_t[:n_out], n_pairs
 
 
-@jit
-def clean_contacts(ar, vert, edge, gap, t, cover_start, cover_lo, cover_hi, nxt, canon,
-                   vbody, nw, n_vertices, n_bodies, param_tol, angle_tol):
-    """:func:`clean_contacts_inline` for Python callers."""
-    return clean_contacts_inline(ar, vert, edge, gap, t, cover_start, cover_lo, cover_hi, nxt,
-                                 canon, vbody, nw, n_vertices, n_bodies, param_tol, angle_tol)
+narrow_phase = for_python(narrow_phase_inline)
 
 
 @inner(machine_inline=True)
@@ -418,3 +405,6 @@ def clean_contacts_inline(ar, vert, edge, gap, t, cover_start, cover_lo, cover_h
     o2 = _argsort_int(ar, k2)
     o1 = _argsort_int(ar, gather(ar, k1, o2))
     return gather(ar, idx, gather(ar, o2, o1))
+
+
+clean_contacts = for_python(clean_contacts_inline)

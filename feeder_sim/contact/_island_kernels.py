@@ -41,7 +41,7 @@ from feeder_sim.compiled.arena import (
     zeros_f,
     zeros_f2,
 )
-from feeder_sim.compiled.jit import inner, jit
+from feeder_sim.compiled.jit import for_python, inner, jit
 from feeder_sim.contact._collision_kernels import _argsort
 from feeder_sim.contact._lcp_kernels import (
     _affine,
@@ -58,12 +58,6 @@ def _find(parent: np.ndarray, i: int) -> int:
         parent[i] = parent[parent[i]]
         i = parent[i]
     return i
-
-
-@jit
-def island_groups(ar, n_bodies, dynamic, a, b):
-    """:func:`island_groups_inline` for Python callers."""
-    return island_groups_inline(ar, n_bodies, dynamic, a, b)
 
 
 @inner(machine_inline=True)
@@ -135,6 +129,9 @@ def island_groups_inline(ar, n_bodies, dynamic, a, b):
     return order, starts, bodies, body_starts
 
 
+island_groups = for_python(island_groups_inline)
+
+
 @inner
 def _rows(ar, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia):
     """Per-row Jacobian blocks of contacts: rows [N_0..N_{c-1}, T_0..T_{c-1}].
@@ -168,13 +165,6 @@ def _rows(ar, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia):
     return ja, jb, ma, mb
 
 
-@jit
-def apply_impulses(ar, dv, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, p_n, p_t):
-    """:func:`apply_impulses_inline` for Python callers."""
-    return apply_impulses_inline(ar, dv, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia,
-                                 p_n, p_t)
-
-
 @inner(machine_inline=True)
 def apply_impulses_inline(ar, dv, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, p_n,
                           p_t):
@@ -201,6 +191,9 @@ def apply_impulses_inline(ar, dv, a, b, normal, tangent, r_a, r_b, inv_mass, inv
         dv[i, 0] += inv_mass[i] * s[i, 0]
         dv[i, 1] += inv_mass[i] * s[i, 1]
         dv[i, 2] += inv_inertia[i] * s[i, 2]
+
+
+apply_impulses = for_python(apply_impulses_inline)
 
 
 @inner
@@ -297,12 +290,6 @@ def contact_velocities(a, b, normal, r_a, r_b, velocity, omega):
     return v_n, v_t
 
 
-@jit
-def drift(idx, position, angle, velocity, omega, half_h, out_position, out_angle):
-    """:func:`drift_inline` for Python callers."""
-    return drift_inline(idx, position, angle, velocity, omega, half_h, out_position, out_angle)
-
-
 @inner(machine_inline=True)
 def drift_inline(idx, position, angle, velocity, omega, half_h, out_position, out_angle):
     """``out = position + half_h * velocity`` (and the same for the angles) for the bodies
@@ -315,10 +302,7 @@ def drift_inline(idx, position, angle, velocity, omega, half_h, out_position, ou
         out_angle[i] = angle[i] + half_h * omega[i]
 
 
-@jit
-def speed_bounds(velocity, omega, radius, dynamic):
-    """:func:`speed_bounds_inline` for Python callers."""
-    return speed_bounds_inline(velocity, omega, radius, dynamic)
+drift = for_python(drift_inline)
 
 
 @inner(machine_inline=True)
@@ -352,6 +336,9 @@ def speed_bounds_inline(velocity, omega, radius, dynamic):
                  + abs(omega[i]) * radius[i])
             spread = s if s > spread or s != s else spread
     return v_dyn, v_other, spin, 2.0 * spread
+
+
+speed_bounds = for_python(speed_bounds_inline)
 
 
 class RowSettings(NamedTuple):
@@ -409,15 +396,6 @@ def any_kept_inline(ar, a, b, point, normal, gap, position, v_end, w_end, piece_
                  settings)[0]:
             return True
     return False
-
-
-@jit
-def contact_rows(ar, a, b, point, normal, gap, order, starts, position, v_end, w_end, v_pre,
-                 w_pre, mu_s_body, mu_d_body, e_body, piece_a, piece_b, piece_width, settings):
-    """:func:`contact_rows_inline` for Python callers."""
-    return contact_rows_inline(ar, a, b, point, normal, gap, order, starts, position, v_end,
-                               w_end, v_pre, w_pre, mu_s_body, mu_d_body, e_body, piece_a,
-                               piece_b, piece_width, settings)
 
 
 @inner(machine_inline=True)
@@ -538,11 +516,7 @@ def contact_rows_inline(ar, a, b, point, normal, gap, order, starts, position, v
             mu_lo, mu_hi, gap_min)
 
 
-@jit
-def feature_gaps(ar, idx, vertex, edge, vertices, normals, vertex_body, position, cos, sin):
-    """:func:`feature_gaps_inline` for Python callers."""
-    return feature_gaps_inline(ar, idx, vertex, edge, vertices, normals, vertex_body, position,
-                               cos, sin)
+contact_rows = for_python(contact_rows_inline)
 
 
 @inner(machine_inline=True)
@@ -568,6 +542,9 @@ def feature_gaps_inline(ar, idx, vertex, edge, vertices, normals, vertex_body, p
         x, y = normals[e, 0], normals[e, 1]
         out[q] = (c * x - s * y) * (px - qx) + (s * x + c * y) * (py - qy)
     return out
+
+
+feature_gaps = for_python(feature_gaps_inline)
 
 
 # Columns of a contact's record in the projected Gauss-Seidel (``_pgs_records``): the Jacobian
@@ -691,6 +668,23 @@ def _pgs_island(lo_c, hi_c, a, b, R, fixed_a, fixed_b, dv, box, x_n, x_t, g_n, g
     return change
 
 
+@inner(machine_inline=True)
+def _coupling(a, b, k, kj, ma, mb, gm, ja, jb, gj):
+    """A Delassus entry: row ``gm`` of the inverse-mass-weighted Jacobians (``ma``, ``mb``) of
+    contact ``k`` against row ``gj`` of the Jacobians (``ja``, ``jb``) of contact ``kj``,
+    summed over the bodies the two contacts share (``a`` / ``b`` the bodies of each side)."""
+    s = 0.0
+    if a[k] == a[kj]:
+        s += ma[gm, 0] * ja[gj, 0] + ma[gm, 1] * ja[gj, 1] + ma[gm, 2] * ja[gj, 2]
+    if a[k] == b[kj]:
+        s += ma[gm, 0] * jb[gj, 0] + ma[gm, 1] * jb[gj, 1] + ma[gm, 2] * jb[gj, 2]
+    if b[k] == a[kj]:
+        s += mb[gm, 0] * ja[gj, 0] + mb[gm, 1] * ja[gj, 1] + mb[gm, 2] * ja[gj, 2]
+    if b[k] == b[kj]:
+        s += mb[gm, 0] * jb[gj, 0] + mb[gm, 1] * jb[gj, 1] + mb[gm, 2] * jb[gj, 2]
+    return s
+
+
 @inner
 def _island_dense(ar, lo_c, hi_c, c, a, b, ja, jb, ma, mb, b_n, b_t, box, mu_lo, mu_hi):
     """The assembled problem of contacts lo_c..hi_c-1 (``dynamics.assemble``'s layout: the
@@ -728,15 +722,7 @@ def _island_dense(ar, lo_c, hi_c, c, a, b, ja, jb, ma, mb, b_n, b_t, box, mu_lo,
         for j in range(i, m):
             kj = rc[j]
             gj = kj + c if rf[j] else kj
-            s = 0.0
-            if a[k] == a[kj]:
-                s += ma[gi, 0] * ja[gj, 0] + ma[gi, 1] * ja[gj, 1] + ma[gi, 2] * ja[gj, 2]
-            if a[k] == b[kj]:
-                s += ma[gi, 0] * jb[gj, 0] + ma[gi, 1] * jb[gj, 1] + ma[gi, 2] * jb[gj, 2]
-            if b[k] == a[kj]:
-                s += mb[gi, 0] * ja[gj, 0] + mb[gi, 1] * ja[gj, 1] + mb[gi, 2] * ja[gj, 2]
-            if b[k] == b[kj]:
-                s += mb[gi, 0] * jb[gj, 0] + mb[gi, 1] * jb[gj, 1] + mb[gi, 2] * jb[gj, 2]
+            s = _coupling(a, b, k, kj, ma, mb, gi, ja, jb, gj)
             A[i, j] = s
             A[j, i] = s
     return A, bb, nof, lo, hi, rc, rf
@@ -751,15 +737,6 @@ NO_FRICTION_ROW = 7
 # at most this: round-off of a solution in those states (Dantzig's own answers reach
 # 1e-16 to 1e-14), far below the lcp_tol its answers must meet (1e-9 by default).
 STATES_TOL = 1e-12
-
-
-@jit
-def solve_small(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, b_n,
-                b_t, box, mu_lo, mu_hi, x_n, x_t, w_t, states_in, states_out):
-    """:func:`solve_small_inline` for Python callers."""
-    return solve_small_inline(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass,
-                              inv_inertia, b_n, b_t, box, mu_lo, mu_hi, x_n, x_t, w_t,
-                              states_in, states_out)
 
 
 @inner(machine_inline=True)
@@ -827,15 +804,7 @@ def solve_small_inline(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_
     return res, work, codes
 
 
-@jit
-def stop_within_step(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia,
-                     box, slip, sliding, half_vel, half_om, mu_s, mu_d, x_n, x_t, w_t, b_n, b_t,
-                     mu_lo, mu_hi, offset, remain):
-    """:func:`stop_within_step_inline` for Python callers."""
-    return stop_within_step_inline(ar, select, starts, a, b, normal, tangent, r_a, r_b,
-                                   inv_mass, inv_inertia, box, slip, sliding, half_vel, half_om,
-                                   mu_s, mu_d, x_n, x_t, w_t, b_n, b_t, mu_lo, mu_hi, offset,
-                                   remain)
+solve_small = for_python(solve_small_inline)
 
 
 @inner(machine_inline=True)
@@ -930,14 +899,7 @@ def stop_within_step_inline(ar, select, starts, a, b, normal, tangent, r_a, r_b,
     return redo
 
 
-@jit
-def breakaway_within_step(ar, select, starts, a, b, normal, r_a, r_b, box, slip, half_vel,
-                          half_om, v_t_end, mu_s, mu_d, x_n, x_t, mu_lo, mu_hi, remain,
-                          after_stop):
-    """:func:`breakaway_within_step_inline` for Python callers."""
-    return breakaway_within_step_inline(ar, select, starts, a, b, normal, r_a, r_b, box, slip,
-                                        half_vel, half_om, v_t_end, mu_s, mu_d, x_n, x_t,
-                                        mu_lo, mu_hi, remain, after_stop)
+stop_within_step = for_python(stop_within_step_inline)
 
 
 @inner(machine_inline=True)
@@ -1024,6 +986,9 @@ def breakaway_within_step_inline(ar, select, starts, a, b, normal, r_a, r_b, box
     return redo
 
 
+breakaway_within_step = for_python(breakaway_within_step_inline)
+
+
 @inner
 def _first_zero(u0, u1, f_half, f1):
     """Where in (0, 1) a slip ``u(s) = f(s) + (u1 - f1) s`` that runs from ``u0`` to ``u1`` (of
@@ -1078,15 +1043,8 @@ def _keep_pressing(ar, lo_c, hi_c, c, a, b, ja, jb, ma, mb, x_n, dv):
         rhs[i] = -_row_w(k, k, a, b, ja, jb, dv, 0.0)
         for j in range(m):
             kj = rows[j]
-            s = 0.0
-            if a[k] == a[kj]:
-                s += ma[kj, 0] * ja[k, 0] + ma[kj, 1] * ja[k, 1] + ma[kj, 2] * ja[k, 2]
-            if a[k] == b[kj]:
-                s += mb[kj, 0] * ja[k, 0] + mb[kj, 1] * ja[k, 1] + mb[kj, 2] * ja[k, 2]
-            if b[k] == a[kj]:
-                s += ma[kj, 0] * jb[k, 0] + ma[kj, 1] * jb[k, 1] + ma[kj, 2] * jb[k, 2]
-            if b[k] == b[kj]:
-                s += mb[kj, 0] * jb[k, 0] + mb[kj, 1] * jb[k, 1] + mb[kj, 2] * jb[k, 2]
+            # (kj's inverse mass row against k's Jacobian row: the sum in the same order)
+            s = _coupling(a, b, kj, k, ma, mb, kj, ja, jb, k)
             W[i, j] = s
             amax = max(amax, abs(s))
     counts = full_i(ar, 2, 0)       # named, as every caller of _dz_solve does

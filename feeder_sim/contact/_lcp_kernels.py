@@ -48,18 +48,26 @@ def _affine(ar, A, x, b):
     return out
 
 
+@inner(machine_inline=True)
+def _largest(A, b):
+    """The largest ``|A[i, j]|`` and ``|b[i]|``: the scales of an LCP's tolerances."""
+    amax = 0.0
+    bmax = 0.0
+    for i in range(b.shape[0]):
+        bmax = max(bmax, abs(b[i]))
+        for j in range(b.shape[0]):
+            amax = max(amax, abs(A[i, j]))
+    return amax, bmax
+
+
 @inner
 def _dense_residual(A, b, x, w, nof, lo, hi):
     """``lcp.residual`` of ``w = A x + b`` (w given)."""
     m = b.shape[0]
-    amax = 0.0
-    bmax = 0.0
+    amax, bmax = _largest(A, b)
     xmax = 0.0
     for i in range(m):
-        bmax = max(bmax, abs(b[i]))
         xmax = max(xmax, abs(x[i]))
-        for j in range(m):
-            amax = max(amax, abs(A[i, j]))
     if not np.isfinite(xmax):
         return np.inf
     s_w = max(1e-300, max(bmax, amax * xmax))
@@ -306,14 +314,10 @@ def dantzig(ar, A, b, nof, lo, hi, max_pivots):
     and the row states (``_U`` .. ``_Z``) are those x ends with when the pass succeeded:
     :func:`solve_with_states` solves them again in one piece."""
     m = b.shape[0]
-    amax = 0.0
-    bmax = 0.0
+    amax, bmax = _largest(A, b)
     nfr = 0
     for i in range(m):
-        bmax = max(bmax, abs(b[i]))
         nfr += nof[i] >= 0
-        for j in range(m):
-            amax = max(amax, abs(A[i, j]))
     if amax == 0.0:
         amax = 1.0
     st = empty_i(ar, m)

@@ -111,35 +111,24 @@ DEFAULT_COMPRESSION = 'zstd' if _HAVE_ZSTD else 'none'
 _FLOAT32 = 7
 _UINT32 = 6
 
+
+def _packed(floats: tuple[str, ...], counts: tuple[str, ...]) -> tuple[tuple[str, int, int], ...]:
+    """(name, byte offset, PointField datatype) of float32 fields then uint32 ones, packed."""
+    kinds = [_FLOAT32] * len(floats) + [_UINT32] * len(counts)
+    return tuple((name, 4 * k, kind) for k, (name, kind) in enumerate(zip(floats + counts, kinds)))
+
+
 #: (name, byte offset, PointField datatype) of each field of a contact point.
-CONTACT_FIELDS: tuple[tuple[str, int, int], ...] = (
-    ('x', 0, _FLOAT32),
-    ('y', 4, _FLOAT32),
-    ('z', 8, _FLOAT32),
-    ('normal_x', 12, _FLOAT32),
-    ('normal_y', 16, _FLOAT32),
-    ('normal_impulse', 20, _FLOAT32),
-    ('tangent_impulse', 24, _FLOAT32),
-    ('body_a', 28, _UINT32),
-    ('body_b', 32, _UINT32),
-)
-CONTACT_POINT_STEP = 36
+CONTACT_FIELDS = _packed(('x', 'y', 'z', 'normal_x', 'normal_y', 'normal_impulse',
+                          'tangent_impulse'), ('body_a', 'body_b'))
+CONTACT_POINT_STEP = 4 * len(CONTACT_FIELDS)
 
 #: (name, byte offset, PointField datatype) of each field of a part's impulse point: at the
 #: centre of mass, the frame's totals over the part's contacts (N s, N m s), how many
 #: contacts and the part's index in the frame's poses.
-PART_IMPULSE_FIELDS: tuple[tuple[str, int, int], ...] = (
-    ('x', 0, _FLOAT32),
-    ('y', 4, _FLOAT32),
-    ('z', 8, _FLOAT32),
-    ('impulse_x', 12, _FLOAT32),
-    ('impulse_y', 16, _FLOAT32),
-    ('angular_impulse', 20, _FLOAT32),
-    ('normal_impulse', 24, _FLOAT32),
-    ('contacts', 28, _UINT32),
-    ('part', 32, _UINT32),
-)
-PART_IMPULSE_STEP = 36
+PART_IMPULSE_FIELDS = _packed(('x', 'y', 'z', 'impulse_x', 'impulse_y', 'angular_impulse',
+                               'normal_impulse'), ('contacts', 'part'))
+PART_IMPULSE_STEP = 4 * len(PART_IMPULSE_FIELDS)
 
 #: numpy dtype of one contact point in PointCloud2.data (for decoding logs).
 CONTACT_POINT_DTYPE = np.dtype({

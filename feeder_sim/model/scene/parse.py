@@ -8,7 +8,7 @@ comments) count as absent. ``track: null`` means "no track body".
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import fields, replace
 import math
 from pathlib import Path
@@ -402,18 +402,24 @@ _SINK = {
 }
 
 
-def _sources(value, path: str) -> tuple[SourceSpec, ...]:
+def _records(value, path: str, what: str, spec: dict) -> Iterator[tuple[str, dict]]:
+    """Each item of the list of ``what`` at ``path`` (none if it is absent): its path and
+    its fields as ``spec`` reads them."""
     if value is None:
-        return ()
+        return
     if not _is_list(value):
-        raise _Invalid(path, f'expected a list of sources, got {_describe(value)}')
-    out = []
+        raise _Invalid(path, f'expected a list of {what}, got {_describe(value)}')
     for k, item in enumerate(value):
-        f = _fields(item, f'{path}[{k}]', _SOURCE)
+        yield f'{path}[{k}]', _fields(item, f'{path}[{k}]', spec)
+
+
+def _sources(value, path: str) -> tuple[SourceSpec, ...]:
+    out = []
+    for where, f in _records(value, path, 'sources', _SOURCE):
         rate = f.pop('rate')
         if (rate is None) == (f['interval'] is None):
-            raise _Invalid(f'{path}[{k}]', 'give either interval (s between parts) or rate '
-                                            '(parts per second)')
+            raise _Invalid(where, 'give either interval (s between parts) or rate (parts per '
+                                  'second)')
         if rate is not None:
             f['interval'] = 1.0 / rate
         if f['orientations'] is None:
@@ -463,30 +469,21 @@ _SENSOR = {
 
 
 def _sensors(value, path: str) -> tuple[SensorSpec, ...]:
-    if value is None:
-        return ()
-    if not _is_list(value):
-        raise _Invalid(path, f'expected a list of sensors, got {_describe(value)}')
     out: list[SensorSpec] = []
-    for k, item in enumerate(value):
-        f = _fields(item, f'{path}[{k}]', _SENSOR)
+    for where, f in _records(value, path, 'sensors', _SENSOR):
         if f['name'] in {x.name for x in out}:
-            raise _Invalid(f'{path}[{k}].name', f'two sensors are named {f["name"]!r}')
+            raise _Invalid(f'{where}.name', f'two sensors are named {f["name"]!r}')
         out.append(SensorSpec(f['name'], f['type'], *f['line']))
     return tuple(out)
 
 
 def _sinks(value, path: str) -> tuple[SinkSpec, ...]:
-    if value is None:
-        return ()
-    if not _is_list(value):
-        raise _Invalid(path, f'expected a list of sinks, got {_describe(value)}')
     out = []
-    for k, item in enumerate(value):
-        sink = SinkSpec(**_fields(item, f'{path}[{k}]', _SINK))
+    for where, f in _records(value, path, 'sinks', _SINK):
+        sink = SinkSpec(**f)
         if sink.below is None and not sink.past_exit:
-            raise _Invalid(f'{path}[{k}]', 'a sink takes parts below a height or past the exit: '
-                                           'give below (m) or past_exit: true')
+            raise _Invalid(where, 'a sink takes parts below a height or past the exit: give '
+                                  'below (m) or past_exit: true')
         out.append(sink)
     return tuple(out)
 

@@ -55,7 +55,7 @@ from feeder_sim.compiled.arena import (
     zeros_f,
     zeros_f2,
 )
-from feeder_sim.compiled.jit import inner, jit
+from feeder_sim.compiled.jit import for_python, inner, jit
 from feeder_sim.contact._collision_kernels import (
     _argsort,
     _argsort_int,
@@ -371,10 +371,7 @@ def safe_step_inline(ar, h, pos, ang, vel, om, bodies, shapes, drives, st):
     return safe
 
 
-@jit
-def safe_step(ar, h, pos, ang, vel, om, bodies, shapes, drives, st):
-    """:func:`safe_step_inline` for Python callers (the reference step)."""
-    return safe_step_inline(ar, h, pos, ang, vel, om, bodies, shapes, drives, st)
+safe_step = for_python(safe_step_inline)
 
 
 @inner(machine_inline=True)
