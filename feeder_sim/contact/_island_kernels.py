@@ -52,6 +52,65 @@ from feeder_sim.contact._lcp_kernels import (
 )
 
 
+class IslandRows(NamedTuple):
+    """The contacts of a step's islands, in island order, and the bodies they act on: what
+    every solve of an island reads."""
+
+    starts: np.ndarray       # (n_islands + 1,) int: island i has contacts starts[i]:starts[i+1]
+    a: np.ndarray            # (c,) int: each contact's body a
+    b: np.ndarray            # (c,) int: its body b
+    normal: np.ndarray       # (c, 2): unit normal
+    tangent: np.ndarray      # (c, 2): unit tangent
+    r_a: np.ndarray          # (c, 2) m: contact point relative to body a's centre of mass
+    r_b: np.ndarray          # (c, 2) m: relative to body b's
+    inv_mass: np.ndarray     # (n_bodies,) 1/kg
+    inv_inertia: np.ndarray  # (n_bodies,) 1/(kg m^2)
+
+
+class RowProblem(NamedTuple):
+    """Each contact's velocities before the impulses and its friction bounds: the rows of the
+    islands' LCPs."""
+
+    b_n: np.ndarray     # (c,) m/s: normal velocity
+    b_t: np.ndarray     # (c,) m/s: tangential velocity
+    box: np.ndarray     # (c,) bool: the contact has a friction row
+    mu_lo: np.ndarray   # (c,): bounds -mu_lo x_N <= x_T <= mu_hi x_N
+    mu_hi: np.ndarray   # (c,)
+
+
+class RowImpulses(NamedTuple):
+    """What a solve writes per contact."""
+
+    x_n: np.ndarray     # (c,) N s: normal impulse (a solve from a warm start reads it first)
+    x_t: np.ndarray     # (c,) N s: tangential impulse
+    w_t: np.ndarray     # (c,) m/s: tangential velocity after them (contacts with box)
+
+
+class StepSlip(NamedTuple):
+    """How each contact slips over the step: what Coulomb's law within the step reads
+    (``stop_within_step``, ``breakaway_within_step``) and writes (``offset``, ``remain``)."""
+
+    slip: np.ndarray       # (c,) m/s: tangential slip at the step's start
+    sliding: np.ndarray    # (c,) bool: slid into the step (one-sided bounds)
+    half_vel: np.ndarray   # (n_bodies, 2) m/s: free velocities at mid-step
+    half_om: np.ndarray    # (n_bodies,) rad/s
+    v_t_end: np.ndarray    # (c,) m/s: free slip at the step's end
+    mu_s: np.ndarray       # (c,): static friction coefficient
+    mu_d: np.ndarray       # (c,): dynamic
+    offset: np.ndarray     # (c,) N s: impulse of the slide before a stop
+    remain: np.ndarray     # (c,): the part of the step after a stop (1: none)
+
+
+class PgsSettings(NamedTuple):
+    """How projected Gauss-Seidel sweeps an island (``TimeStepSettings.pgs_*``)."""
+
+    tol_mps: float      # velocity residual to stop at, m/s
+    max_sweeps: int
+    check: int          # sweeps between residual checks (and conjugate steps)
+    omega: float        # SOR factor
+    momentum: bool      # conjugate gradient steps (Silcowitz, Niebe and Erleben)
+
+
 @inner
 def _find(parent: np.ndarray, i: int) -> int:
     while parent[i] != i:
@@ -133,11 +192,13 @@ island_groups = for_python(island_groups_inline)
 
 
 @inner
-def _rows(ar, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia):
-    """Per-row Jacobian blocks of contacts: rows [N_0..N_{c-1}, T_0..T_{c-1}].
+def _rows(ar, rows):
+    """Per-row Jacobian blocks of the contacts of ``rows`` (:class:`IslandRows`): rows
+    [N_0..N_{c-1}, T_0..T_{c-1}].
 
     ``ja[i] = (d, r_a x d)`` acts on body a, ``jb[i] = -(d, r_b x d)`` on body b; ``ma`` /
     ``mb`` are the same blocks multiplied by the inverse mass (so ``dv = M^-1 J^T x``)."""
+    _, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia = rows
     c = a.shape[0]
     m = 2 * c
     ja = empty_f2(ar, m, 3)
@@ -166,18 +227,19 @@ def _rows(ar, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia):
 
 
 @inner(machine_inline=True)
-def apply_impulses_inline(ar, dv, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, p_n,
-                          p_t):
-    """``dv[body] += M^-1 J^T p`` for contact impulses (p_n, p_t); dv is (n_bodies, 3).
+def apply_impulses_inline(ar, dv, rows, p_n, p_t):
+    """``dv[body] += M^-1 J^T p`` for impulses (p_n, p_t) at the contacts of ``rows``
+    (:class:`IslandRows`); dv is (n_bodies, 3).
 
     Summed like ``IslandJacobian.velocity_change`` (``inv_mass * (J.T @ impulse)``): per body
     and component, the normal rows in contact order, then the tangent rows, then one
     multiplication by the inverse mass, so the velocities match the numpy path."""
+    _, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia = rows
     n = dv.shape[0]
     s = zeros_f2(ar, n, 3)
-    for rows in range(2):
-        d = normal if rows == 0 else tangent
-        p = p_n if rows == 0 else p_t
+    for kind in range(2):
+        d = normal if kind == 0 else tangent
+        p = p_n if kind == 0 else p_t
         for k in range(a.shape[0]):
             dx, dy = d[k, 0], d[k, 1]
             ia, ib = a[k], b[k]
@@ -740,10 +802,8 @@ STATES_TOL = 1e-12
 
 
 @inner(machine_inline=True)
-def solve_small_inline(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass,
-                       inv_inertia, b_n, b_t, box, mu_lo, mu_hi, x_n, x_t, w_t, states_in,
-                       states_out):
-    """The islands with ``select`` (contacts grouped by ``starts``, CSR) by Baraff-Dantzig
+def solve_small_inline(ar, select, rows, problem, out, states_in, states_out):
+    """The islands with ``select`` (of ``rows``, :class:`IslandRows`) by Baraff-Dantzig
     (``dantzig``), from scratch, or in one solve where every contact of an island comes with
     the row states it ended the last step in (``states_in``, see ``_STATE_BITS``) and the
     problem solved in those states is solved to ``STATES_TOL`` (a part resting or sliding
@@ -751,13 +811,17 @@ def solve_small_inline(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_
 
     An island's problem has its normal rows, then the friction rows of the contacts with
     ``box[k]`` (bounds ``[-mu_lo x_N, mu_hi x_N]``; other contacts keep x_T = 0), exactly
-    ``dynamics.assemble``'s layout. Writes the impulses to ``x_n`` / ``x_t``, the new
-    tangential velocity of contacts with a friction row to ``w_t`` and the row states the
-    answer ends in to ``states_out`` (-1 where Dantzig failed); returns per island the
-    residual (``lcp.residual``), the pivots and the Dantzig abort codes (pass, retry)."""
+    ``dynamics.assemble``'s layout (``problem``, :class:`RowProblem`). Writes the impulses and
+    the new tangential velocity of contacts with a friction row to ``out``
+    (:class:`RowImpulses`) and the row states the answer ends in to ``states_out`` (-1 where
+    Dantzig failed); returns per island the residual (``lcp.residual``), the pivots and the
+    Dantzig abort codes (pass, retry)."""
+    starts, a, b = rows.starts, rows.a, rows.b
+    b_n, b_t, box, mu_lo, mu_hi = problem
+    x_n, x_t, w_t = out
     n_isl = starts.shape[0] - 1
     c = a.shape[0]
-    ja, jb, ma, mb = _rows(ar, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia)
+    ja, jb, ma, mb = _rows(ar, rows)
     res = zeros_f(ar, n_isl)
     work = full_i(ar, n_isl, 0)
     codes = full_i2(ar, n_isl, 2, 0)
@@ -808,10 +872,10 @@ solve_small = for_python(solve_small_inline)
 
 
 @inner(machine_inline=True)
-def stop_within_step_inline(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass,
-                            inv_inertia, box, slip, sliding, half_vel, half_om, mu_s, mu_d, x_n,
-                            x_t, w_t, b_n, b_t, mu_lo, mu_hi, offset, remain):
-    """Coulomb's law over a step for the contacts whose slip stops within it.
+def stop_within_step_inline(ar, select, rows, problem, out, slip_state):
+    """Coulomb's law over a step for the contacts whose slip stops within it (of ``rows``;
+    ``problem``, ``out`` and ``slip_state`` a :class:`RowProblem`, :class:`RowImpulses`
+    and :class:`StepSlip`).
 
     A contact that slides into the step (pre-step slip ``slip``, m/s, with ``sliding``) with
     a friction row is held by ``mu_d`` against its slip until the slip reaches zero, and only
@@ -837,6 +901,10 @@ def stop_within_step_inline(ar, select, starts, a, b, normal, tangent, r_a, r_b,
 
     Islands with ``select`` only; contacts with ``remain < 1`` are left as they are (a stop
     is taken once a step). Returns per island whether it must be solved again."""
+    starts, a, b, normal, _, r_a, r_b, inv_mass, _ = rows
+    b_n, b_t, box, mu_lo, mu_hi = problem
+    x_n, x_t, w_t = out
+    slip, sliding, half_vel, half_om, _, mu_s, mu_d, offset, remain = slip_state
     n_isl = starts.shape[0] - 1
     c = a.shape[0]
     redo = full_b(ar, n_isl, False)
@@ -854,7 +922,7 @@ def stop_within_step_inline(ar, select, starts, a, b, normal, tangent, r_a, r_b,
                 any_sliding = True
     if not any_sliding:
         return redo
-    ja, jb, ma, mb = _rows(ar, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia)
+    ja, jb, ma, mb = _rows(ar, rows)
     dv = zeros_f2(ar, inv_mass.shape[0], 3)
     _add_tangent_impulses(n_isl, select, starts, a, b, ma, mb, c, change, dv)
     for isl in range(n_isl):
@@ -903,10 +971,10 @@ stop_within_step = for_python(stop_within_step_inline)
 
 
 @inner(machine_inline=True)
-def breakaway_within_step_inline(ar, select, starts, a, b, normal, r_a, r_b, box, slip,
-                                 half_vel, half_om, v_t_end, mu_s, mu_d, x_n, x_t, mu_lo,
-                                 mu_hi, remain, after_stop):
-    """A static contact that holds over its part of the step on average but not throughout.
+def breakaway_within_step_inline(ar, select, rows, problem, out, slip_state, after_stop):
+    """A static contact that holds over its part of the step on average but not throughout
+    (of ``rows``; ``problem``, ``out`` and ``slip_state`` a :class:`RowProblem`,
+    :class:`RowImpulses` and :class:`StepSlip`; it narrows the friction bounds).
 
     The static law on a step's impulse compares the step's mean demand with ``mu_s``; the
     demand changes within the step (a drive's acceleration), so a contact can stick at the
@@ -926,6 +994,10 @@ def breakaway_within_step_inline(ar, select, starts, a, b, normal, r_a, r_b, box
     stop (``after_stop``) or those static from the step's start, whose body pair holds (its
     contacts' impulses sum to less than their bounds).
     Returns per island whether it must be solved again."""
+    starts, a, b, normal, _, r_a, r_b, _, _ = rows
+    _, _, box, mu_lo, mu_hi = problem
+    x_n, x_t = out.x_n, out.x_t
+    slip, _, half_vel, half_om, v_t_end, mu_s, mu_d, _, remain = slip_state
     n_isl = starts.shape[0] - 1
     c = a.shape[0]
     redo = full_b(ar, n_isl, False)
@@ -1140,15 +1212,16 @@ def _momentum(lo_c, hi_c, a, b, R, bodies, dv, dv0, P, box, mu_lo, mu_hi, x_n, x
 
 
 @jit
-def solve_pgs(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia, b_n,
-              b_t, box, mu_lo, mu_hi, x_n, x_t, w_t, dv, tol, max_sweeps, check, omega,
-              momentum, height):
+def solve_pgs(ar, select, rows, problem, out, dv, pgs, height):
     """:func:`_solve_pgs_in_order` with each selected island's contacts taken bottom-up, in
     order of ``height`` (along -gravity, any unit; ties keep their order): consecutive rows
     then mostly belong to parts side by side rather than to one body, whose velocity each
     row must wait for, and a sweep of a settled pile costs less while about as many sweeps
     are needed (``benchmarks/pile.py``). The arguments are those of ``_solve_pgs_in_order``
-    in the caller's order; ``x_n``, ``x_t`` and ``w_t`` are written back in it."""
+    in the caller's order; ``out`` is written back in it."""
+    starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia = rows
+    b_n, b_t, box, mu_lo, mu_hi = problem
+    x_n, x_t, w_t = out
     c = a.shape[0]
     perm = arange_i(ar, c)
     for isl in range(starts.shape[0] - 1):
@@ -1158,13 +1231,15 @@ def solve_pgs(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv
             for q in range(local.shape[0]):
                 perm[lo_c + q] = lo_c + local[q]
     s_x_n, s_x_t, s_w_t = gather(ar, x_n, perm), gather(ar, x_t, perm), gather(ar, w_t, perm)
-    res, vres, work = _solve_pgs_in_order(
-        ar, select, starts, gather(ar, a, perm), gather(ar, b, perm),
-        gather_rows(ar, normal, perm), gather_rows(ar, tangent, perm),
-        gather_rows(ar, r_a, perm), gather_rows(ar, r_b, perm), inv_mass, inv_inertia,
-        gather(ar, b_n, perm), gather(ar, b_t, perm), gather(ar, box, perm),
-        gather(ar, mu_lo, perm), gather(ar, mu_hi, perm), s_x_n, s_x_t, s_w_t, dv, tol,
-        max_sweeps, check, omega, momentum)
+    sorted_rows = IslandRows(
+        starts, gather(ar, a, perm), gather(ar, b, perm), gather_rows(ar, normal, perm),
+        gather_rows(ar, tangent, perm), gather_rows(ar, r_a, perm), gather_rows(ar, r_b, perm),
+        inv_mass, inv_inertia)
+    sorted_problem = RowProblem(gather(ar, b_n, perm), gather(ar, b_t, perm),
+                                gather(ar, box, perm), gather(ar, mu_lo, perm),
+                                gather(ar, mu_hi, perm))
+    res, vres, work = _solve_pgs_in_order(ar, select, sorted_rows, sorted_problem,
+                                          RowImpulses(s_x_n, s_x_t, s_w_t), dv, pgs)
     for q in range(c):
         x_n[perm[q]] = s_x_n[q]
         x_t[perm[q]] = s_x_t[q]
@@ -1173,11 +1248,11 @@ def solve_pgs(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv
 
 
 @inner
-def _solve_pgs_in_order(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv_mass,
-                        inv_inertia, b_n, b_t, box, mu_lo, mu_hi, x_n, x_t, w_t, dv, tol,
-                        max_sweeps, check, omega, momentum):
-    """The islands with ``select`` by projected Gauss-Seidel in velocity form
-    (``_pgs_island``), with ``momentum``: each ``check`` sweeps followed by a nonsmooth
+def _solve_pgs_in_order(ar, select, rows, problem, out, dv, pgs):
+    """The islands with ``select`` (of ``rows``, :class:`IslandRows`; their LCPs'
+    ``problem``, :class:`RowProblem`) by projected Gauss-Seidel in velocity form
+    (``_pgs_island``; ``pgs`` a :class:`PgsSettings`), with ``momentum``: each ``check``
+    sweeps followed by a nonsmooth
     conjugate gradient step (``_momentum``; the 200-part pile of the throughput benchmark
     needs 39 sweeps per solve instead of 62).
 
@@ -1188,9 +1263,13 @@ def _solve_pgs_in_order(ar, select, starts, a, b, normal, tangent, r_a, r_b, inv
     is reached; the answer is always that of a sweep, whose impulses lie within their
     bounds. Writes the new tangential velocities to ``w_t``; returns per island the
     ``lcp.residual``, the velocity residual and the sweeps."""
+    starts, a, b, _, _, _, _, inv_mass, inv_inertia = rows
+    b_n, b_t, box, mu_lo, mu_hi = problem
+    x_n, x_t, w_t = out
+    tol, max_sweeps, check, omega, momentum = pgs
     c = a.shape[0]
     n_isl = starts.shape[0] - 1
-    ja, jb, ma, mb = _rows(ar, a, b, normal, tangent, r_a, r_b, inv_mass, inv_inertia)
+    ja, jb, ma, mb = _rows(ar, rows)
     diag = empty_f(ar, 2 * c)
     for i in range(2 * c):
         diag[i] = (ja[i, 0] * ma[i, 0] + ja[i, 1] * ma[i, 1] + ja[i, 2] * ma[i, 2]

@@ -308,13 +308,30 @@ def pgs_in_order(select, starts, a, b, normal, tangent, r_a, r_b, inv_mass, inv_
     return res, vres, work
 
 
+def flat_pgs_args(args):
+    """Copies of a ``solve_pgs`` call's arguments, flat as the transcriptions take them:
+    0 arena, 1 select, 2-10 the ``IslandRows`` (2 starts, 3 a, 4 b, 5 normal, 6 tangent, 7 r_a,
+    8 r_b, 9 inv_mass, 10 inv_inertia), 11-15 the ``RowProblem`` (11 b_n, 12 b_t, 13 box,
+    14 mu_lo, 15 mu_hi), 16-18 the ``RowImpulses`` (16 x_n, 17 x_t, 18 w_t), 19 dv, 20-24 the
+    ``PgsSettings`` (20 tol, 21 max_sweeps, 22 check, 23 omega, 24 momentum), 25 height."""
+    ar, select, rows, problem, out, dv, pgs, height = args
+    return [x.copy() if isinstance(x, np.ndarray) else x
+            for x in (ar, select, *rows, *problem, *out, dv, *pgs, height)]
+
+
+def pgs_args(flat):
+    """The arguments of ``solve_pgs`` from ``flat_pgs_args``' list (its arrays, not copies)."""
+    return (flat[0], flat[1], K.IslandRows(*flat[2:11]), K.RowProblem(*flat[11:16]),
+            K.RowImpulses(*flat[16:19]), flat[19], K.PgsSettings(*flat[20:25]), flat[25])
+
+
 def pgs_calls(sim, t_end):
     """Copies of the arguments of every ``solve_pgs`` call while ``sim`` advances to
-    ``t_end`` (s)."""
+    ``t_end`` (s), flat (``flat_pgs_args``)."""
     kernel, calls = TS.K.solve_pgs, []
 
     def solve_pgs(*args):
-        calls.append([x.copy() if isinstance(x, np.ndarray) else x for x in args])
+        calls.append(flat_pgs_args(args))
         return kernel(*args)
 
     TS.K.solve_pgs = solve_pgs
@@ -335,7 +352,7 @@ def test_pgs_kernel_gives_the_bits_of_a_plain_transcription():
     sweeps = 0
     for args in calls:
         ref_args = [x.copy() if isinstance(x, np.ndarray) else x for x in args]
-        got = kernel(*args)
+        got = kernel(*pgs_args(args))
         ref = pgs_reference(*ref_args[1:])          # (the kernel's first: its scratch arena)
         for x, y in zip(got, ref, strict=True):
             assert same_bits(x, y)
@@ -387,7 +404,7 @@ def pgs_problems(mu, n_parts=40):
 def run_pgs(args, tol, momentum, max_sweeps=100_000):
     args = [x.copy() if isinstance(x, np.ndarray) else x for x in args]
     args[20:22], args[24] = (tol, max_sweeps), momentum
-    res, vres, sweeps = TS.K.solve_pgs(*args)
+    res, vres, sweeps = TS.K.solve_pgs(*pgs_args(args))
     return args, vres, sweeps
 
 

@@ -73,10 +73,15 @@ from feeder_sim.contact._island_kernels import (
     drift_inline,
     feature_gaps_inline,
     island_groups_inline,
+    IslandRows,
+    PgsSettings,
+    RowImpulses,
+    RowProblem,
     RowSettings,
     solve_pgs,
     solve_small_inline,
     speed_bounds_inline,
+    StepSlip,
     stop_within_step_inline,
 )
 from feeder_sim.model.arrays import BodyArrays, ShapeArrays
@@ -489,10 +494,10 @@ def _record_batch(ints, floats, sel, rows, work, res, converged):
 
 
 @inner(machine_inline=True)
-def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b_t, box, mu_lo,
-           mu_hi, mu_s, mu_d, slip, colliding, half_vel, half_om, at, point, order, todo, warm,
-           st, ints, floats, msgs, n_msgs):
-    """``TimeStepper._solve`` (arrays in island order; ``at``: each contact's place in the
+def _solve(ar, n_bodies, rows, bodies, problem, mu_s, mu_d, slip, colliding, half_vel, half_om,
+           at, point, order, todo, warm, st, ints, floats, msgs, n_msgs):
+    """``TimeStepper._solve`` (``rows`` an :class:`IslandRows`, ``problem`` a
+    :class:`RowProblem`, arrays in island order; ``at``: each contact's place in the
     previous step's ``warm``, -1 where new; ``point``: the contact points in the step's
     order, which ``order`` maps to island order; PGS sweeps a pile bottom-up by them): the
     impulses and the row states of the small
@@ -501,10 +506,12 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
     ``half_vel`` / ``half_om`` the bodies' free velocities at mid-step, for
     ``stop_within_step`` and ``breakaway_within_step`` (not in an island with a
     ``colliding`` contact: an impact's impulse is not spread over the step)."""
+    starts, a = rows.starts, rows.a
+    b_n, b_t, box, mu_lo, mu_hi = problem
     k = a.shape[0]
     n_isl = starts.shape[0] - 1
     lens = empty_i(ar, n_isl)
-    rows = empty_i(ar, n_isl)
+    n_rows = empty_i(ar, n_isl)
     isl = empty_i(ar, k)
     small = full_b(ar, n_isl, False)
     large = full_b(ar, n_isl, False)
@@ -515,8 +522,8 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
         for q in range(starts[i], starts[i + 1]):
             isl[q] = i
             nbox += box[q]
-        rows[i] = lens[i] + nbox
-        small[i] = todo[i] and rows[i] <= st.direct_max_rows
+        n_rows[i] = lens[i] + nbox
+        small[i] = todo[i] and n_rows[i] <= st.direct_max_rows
         large[i] = todo[i] and not small[i]
         any_large = any_large or large[i]
     # the order PGS sweeps a pile in: bottom-up; nothing to sort without a pile
@@ -557,25 +564,27 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
     remain = empty_f(ar, k)
     for q in range(k):
         remain[q] = 1.0
+    # the bounds as the passes below narrow them, the answers, the slip within the step
+    bounded = RowProblem(b_n, b_t, box, lo, hi)
+    out = RowImpulses(x_n, x_t, v_t_new)
+    slip_state = StepSlip(slip, sliding, half_vel, half_om, v_t_end, mu_s, mu_d, offset, remain)
+    pgs = PgsSettings(st.pgs_tol_mps, st.pgs_max_sweeps, st.pgs_check, st.pgs_omega,
+                      st.pgs_momentum)
     for attempt in range(3):
         if small.any():
-            res, work, codes = solve_small_inline(
-                ar, small, starts, a, b, normal, tangent, r_a, r_b, bodies.inv_mass,
-                bodies.inv_inertia, b_n, b_t, box, lo, hi, x_n, x_t, v_t_new, states_in, states)
+            res, work, codes = solve_small_inline(ar, small, rows, bounded, out, states_in,
+                                                  states)
             for i in range(n_isl):
                 if small[i] and res[i] > st.lcp_tol:
                     return x_n, x_t, states, False
-            _record_batch(ints, floats, small, rows, work, res, ones)
+            _record_batch(ints, floats, small, n_rows, work, res, ones)
         if large.any():
-            res, vres, work = solve_pgs(ar, large, starts, a, b, normal, tangent, r_a, r_b,
-                                        bodies.inv_mass, bodies.inv_inertia, b_n, b_t, box, lo,
-                                        hi, x_n, x_t, v_t_new, zeros_f2(ar, n_bodies, 3),
-                                        st.pgs_tol_mps, st.pgs_max_sweeps, st.pgs_check,
-                                        st.pgs_omega, st.pgs_momentum, height)
+            res, vres, work = solve_pgs(ar, large, rows, bounded, out,
+                                        zeros_f2(ar, n_bodies, 3), pgs, height)
             conv = empty_b(ar, n_isl)
             for i in range(n_isl):
                 conv[i] = vres[i] <= st.pgs_tol_mps
-            _record_batch(ints, floats, large, rows, work, res, conv)
+            _record_batch(ints, floats, large, n_rows, work, res, conv)
             n_large = 0
             for i in range(n_isl):
                 if large[i]:
@@ -583,7 +592,7 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
                     if not conv[i] and n_msgs[0] < msgs.shape[0]:
                         m = n_msgs[0]
                         msgs[m, 0], msgs[m, 1] = vres[i], res[i]
-                        msgs[m, 2], msgs[m, 3] = work[i], rows[i]
+                        msgs[m, 2], msgs[m, 3] = work[i], n_rows[i]
                         n_msgs[0] += 1
             ints[I_PGS] += n_large
             floats[F_MAX_PGS_VRES] = _larger(floats[F_MAX_PGS_VRES], _nan_max(vres, large))
@@ -591,10 +600,7 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
             break
         # a slip that stops within the step (small islands, first answer only)
         if attempt == 0 and any_sliding:
-            redo = stop_within_step_inline(ar, small, starts, a, b, normal, tangent, r_a, r_b,
-                                           bodies.inv_mass, bodies.inv_inertia, box, slip,
-                                           sliding, half_vel, half_om, mu_s, mu_d, x_n, x_t,
-                                           v_t_new, b_n, b_t, lo, hi, offset, remain)
+            redo = stop_within_step_inline(ar, small, rows, bounded, out, slip_state)
         else:
             redo = full_b(ar, n_isl, False)
         # dynamics.second_pass: after the first answer on the bounds friction_rows set, after
@@ -625,9 +631,8 @@ def _solve(ar, n_bodies, starts, a, b, normal, tangent, r_a, r_b, bodies, b_n, b
         if any_sliding or attempt == 0:
             for i in range(n_isl):
                 steady[i] = steady[i] and small[i]
-            late = breakaway_within_step_inline(ar, steady, starts, a, b, normal, r_a, r_b, box,
-                                                slip, half_vel, half_om, v_t_end, mu_s, mu_d,
-                                                x_n, x_t, lo, hi, remain, attempt == 1)
+            late = breakaway_within_step_inline(ar, steady, rows, bounded, out, slip_state,
+                                                attempt == 1)
             for i in range(n_isl):
                 redo[i] = redo[i] or late[i]
         for i in range(n_isl):
@@ -895,13 +900,15 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
                 if dynamic[i]:
                     for j in range(2):
                         half_vel[i, j] = half_vel[i, j] + half * bodies.gravity[j]
+            island_rows = IslandRows(starts, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o,
+                                     bodies.inv_mass, bodies.inv_inertia)
+            problem = RowProblem(b_no, gather(ar, v_t_free, order), gather(ar, box, order),
+                                 gather(ar, mu_lo, order), gather(ar, mu_hi, order))
             x_n, x_t, states, ok_solve = _solve(
-                ar, n, starts, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o, bodies, b_no,
-                gather(ar, v_t_free, order), gather(ar, box, order), gather(ar, mu_lo, order),
-                gather(ar, mu_hi, order), gather(ar, mu_s, order), gather(ar, mu_d, order),
-                gather(ar, v_t_pre, order), gather(ar, colliding, order), half_vel, om,
-                gather(ar, at, order), point, order, neg, warm, st, step_ints, step_floats,
-                msgs, step_msgs)
+                ar, n, island_rows, bodies, problem, gather(ar, mu_s, order),
+                gather(ar, mu_d, order), gather(ar, v_t_pre, order),
+                gather(ar, colliding, order), half_vel, om, gather(ar, at, order), point, order,
+                neg, warm, st, step_ints, step_floats, msgs, step_msgs)
             if not ok_solve:
                 return REFERENCE, warm, approach
             for q in range(m):
@@ -909,8 +916,10 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
                 p_t[order[q]] = x_t[q]
                 p_state[order[q]] = states[q]
             dv = zeros_f2(ar, n, 3)
-            apply_impulses_inline(ar, dv, body_a, body_b, normal, tangent, r_a, r_b,
-                                  bodies.inv_mass, bodies.inv_inertia, p_n, p_t)
+            # (in the step's contact order: no island's start is read)
+            apply_impulses_inline(ar, dv, IslandRows(starts, body_a, body_b, normal, tangent,
+                                                     r_a, r_b, bodies.inv_mass,
+                                                     bodies.inv_inertia), p_n, p_t)
             for i in range(n):
                 if dynamic[i]:
                     end_vel[i, 0] = end_vel[i, 0] + dv[i, 0]
@@ -1044,10 +1053,12 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
                     if proj_at[q] >= 0:
                         states_in[q] = new_warm.projection_state[proj_at[q]]
             states_out = empty_i(ar, kk)
+            proj_rows = IslandRows(starts, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o,
+                                   bodies.inv_mass, bodies.inv_inertia)
+            # the normal rows alone: no friction row, no bounds
             res, work, codes = solve_small_inline(
-                ar, sel, starts, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o, bodies.inv_mass,
-                bodies.inv_inertia, rhs, zeros, full_b(ar, kk, False), zeros, zeros, x_n,
-                zeros_f(ar, kk), zeros_f(ar, kk), states_in, states_out)
+                ar, sel, proj_rows, RowProblem(rhs, zeros, full_b(ar, kk, False), zeros, zeros),
+                RowImpulses(x_n, zeros_f(ar, kk), zeros_f(ar, kk)), states_in, states_out)
             for i in range(n_isl):
                 if sel[i] and res[i] > st.lcp_tol:
                     return REFERENCE, warm, approach
@@ -1056,8 +1067,7 @@ def _step(ar, h, t0, pos, ang, vel, om, bodies, shapes, drives, st, warm, approa
                         new_warm.projection_state[proj_at[q]] = states_out[q]
             _record_batch(step_ints, step_floats, sel, lens, work, res, sel)
             dv = zeros_f2(ar, n, 3)
-            apply_impulses_inline(ar, dv, a_o, b_o, normal_o, tangent_o, r_a_o, r_b_o,
-                                  bodies.inv_mass, bodies.inv_inertia, x_n, zeros)
+            apply_impulses_inline(ar, dv, proj_rows, x_n, zeros)
             sunk = empty_f(ar, kk)
             for q in range(kk):
                 x = -gap_o[q]

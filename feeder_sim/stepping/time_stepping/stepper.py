@@ -257,13 +257,16 @@ def solve_impulses(world: World, cs: ContactSet, bodies: np.ndarray, b_n: np.nda
         stopped = False
         if attempt == 0 and sliding.any():
             contacts = cs.contacts
+            # one island of all the contacts (the mid-step velocities are not read here)
+            rows = K.IslandRows(np.array([0, c]), contacts.body_a, contacts.body_b,
+                                np.ascontiguousarray(contacts.normal), cs.tangent, cs.r_a,
+                                cs.r_b, world.inv_mass, world.inv_inertia)
+            slip_state = K.StepSlip(np.ascontiguousarray(v_t_pre), sliding, np.zeros((0, 2)),
+                                    np.zeros(0), b_t, cs.mu_static, cs.mu_dynamic, offset,
+                                    remain)
             stopped = K.stop_within_step(
-                heap_state(), np.ones(1, bool), np.array([0, c]), contacts.body_a,
-                contacts.body_b, np.ascontiguousarray(contacts.normal), cs.tangent, cs.r_a,
-                cs.r_b, world.inv_mass, world.inv_inertia, box, np.ascontiguousarray(v_t_pre),
-                sliding, np.zeros((0, 2)), np.zeros(0), cs.mu_static, cs.mu_dynamic,
-                impulse[:c].copy(), impulse[c:].copy(), v_t_new, b_n, b_t, mu_lo, mu_hi, offset,
-                remain)[0]
+                heap_state(), np.ones(1, bool), rows, K.RowProblem(b_n, b_t, box, mu_lo, mu_hi),
+                K.RowImpulses(impulse[:c].copy(), impulse[c:].copy(), v_t_new), slip_state)[0]
         saturated, mu_lo, mu_hi = second_pass(mu_lo, mu_hi, impulse[:c], impulse[c:], v_t_new,
                                               cs.mu_static, cs.mu_dynamic,
                                               may_slide & ((remain < 1.0) == attempt),
@@ -346,8 +349,7 @@ def _take(contacts: Contacts, index: np.ndarray) -> Contacts:
 
 class _IslandGeometry:
     """The islands of one contact set (``island_groups``) and its contacts' kinematics in
-    island order: the arguments the island kernels share (``kernel_args``: starts, body_a,
-    body_b, normal, tangent, r_a, r_b, inv_mass, inv_inertia)."""
+    island order: what the island kernels share (``rows``, an ``IslandRows``)."""
 
     def __init__(self, world: World, cs: ContactSet, groups: tuple | None = None) -> None:
         c = cs.contacts
@@ -356,10 +358,10 @@ class _IslandGeometry:
             groups = island_groups(heap_state(), world.n, world.dynamic, c.body_a, c.body_b)
         self.order, self.starts, self.bodies, self.body_starts = groups
         o = self.order
-        self.kernel_args = (self.starts, c.body_a.take(o), c.body_b.take(o),
-                            c.normal.take(o, axis=0), cs.tangent.take(o, axis=0),
-                            cs.r_a.take(o, axis=0), cs.r_b.take(o, axis=0), world.inv_mass,
-                            world.inv_inertia)
+        self.rows = K.IslandRows(self.starts, c.body_a.take(o), c.body_b.take(o),
+                                 c.normal.take(o, axis=0), cs.tangent.take(o, axis=0),
+                                 cs.r_a.take(o, axis=0), cs.r_b.take(o, axis=0),
+                                 world.inv_mass, world.inv_inertia)
 
     def island_bodies(self, i: int) -> np.ndarray:
         return self.bodies[self.body_starts[i]:self.body_starts[i + 1]]
@@ -699,10 +701,12 @@ class TimeStepper(StepperBase):
         states_in = (self._warm.projection_states(keys) if st.reuse_row_states
                      else np.full(k, -1))
         states_out = np.full(k, -1)
+        # the normal rows alone: no friction row, no bounds
         res, work, codes = K.solve_small(
-            heap_state(), sel, *geo.kernel_args, gap[order] + st.projection_slop_m, zeros,
-            np.zeros(k, bool), zeros, zeros, x_n, np.zeros(k), np.zeros(k), states_in,
-            states_out)
+            heap_state(), sel, geo.rows,
+            K.RowProblem(gap[order] + st.projection_slop_m, zeros, np.zeros(k, bool), zeros,
+                         zeros),
+            K.RowImpulses(x_n, np.zeros(k), np.zeros(k)), states_in, states_out)
         bad = sel & (res > st.lcp_tol)
         ok = sel & ~bad
         taken = np.repeat(ok, np.diff(starts))
@@ -717,7 +721,7 @@ class TimeStepper(StepperBase):
                 idx = order[lo_c:hi_c]
                 x_n[lo_c:hi_c] = self._project_island(cs, idx, geo.island_bodies(i), gap[idx])
         dv = np.zeros((w.n, 3))
-        K.apply_impulses(heap_state(), dv, *geo.kernel_args[1:], x_n, zeros)
+        K.apply_impulses(heap_state(), dv, geo.rows, x_n, zeros)
         depth = np.add.reduceat(np.maximum(-gap[order], 0.0) * deep[order], starts[:-1])
         b = geo.bodies
         dv[b] = cap_moves(dv[b], self._radius[b],
@@ -871,8 +875,10 @@ class TimeStepper(StepperBase):
                 p_n[idx], p_t[idx] = impulse[:len(idx)], impulse[len(idx):]
                 p_state[idx] = -1
             dv = np.zeros((w.n, 3))
-            K.apply_impulses(heap_state(), dv, a, b, c.normal, cs.tangent, cs.r_a, cs.r_b,
-                             w.inv_mass, w.inv_inertia, p_n, p_t)
+            # (in the contact order: no island's start is read)
+            K.apply_impulses(heap_state(), dv, K.IslandRows(
+                starts, a, b, c.normal, cs.tangent, cs.r_a, cs.r_b, w.inv_mass,
+                w.inv_inertia), p_n, p_t)
             # end.velocity[dyn] += dv[dyn, :2]; end.omega[dyn] += dv[dyn, 2]
             np.add(end.velocity, dv[:, :2], out=end.velocity, where=self._dyn_col)
             np.add(end.omega, dv[:, 2], out=end.omega, where=self._dyn)
@@ -1006,7 +1012,6 @@ class TimeStepper(StepperBase):
         answer missed ``lcp_tol``."""
         w, st, stats = self.world, self.settings, self.stats
         order, starts = geo.order, geo.starts
-        data = geo.kernel_args + (b_n, b_t, box)
         lens = starts[1:] - starts[:-1]
         isl = np.repeat(np.arange(len(lens)), lens)
         mu_s, mu_d = cs.mu_static[order], cs.mu_dynamic[order]
@@ -1038,10 +1043,17 @@ class TimeStepper(StepperBase):
         offset = np.zeros(len(keys))
         remain = np.ones(len(keys))
         v_t_end = b_t.copy()        # the free end slip, before a stop's impulse shifts b_t
+        out = K.RowImpulses(x_n, x_t, v_t_new)
+        slip_state = K.StepSlip(slip, sliding, half_vel, half_om, v_t_end, mu_s, mu_d, offset,
+                                remain)
+        pgs = K.PgsSettings(st.pgs_tol_mps, st.pgs_max_sweeps, st.pgs_check, st.pgs_omega,
+                            st.pgs_momentum)
         for attempt in range(3):
+            # (second_pass gives new bounds: the problem as it stands now)
+            problem = K.RowProblem(b_n, b_t, box, lo, hi)
             if small.any():
-                res, work, codes = K.solve_small(heap_state(), small, *data, lo, hi, x_n, x_t,
-                                                 v_t_new, states_in, states)
+                res, work, codes = K.solve_small(heap_state(), small, geo.rows, problem, out,
+                                                 states_in, states)
                 bad = small & (res > st.lcp_tol)
                 ok = small & ~bad
                 stats.record_batch(rows[ok], work[ok], res[ok], np.ones(ok.sum(), bool),
@@ -1052,10 +1064,8 @@ class TimeStepper(StepperBase):
                     if len(stats.messages) < MAX_MESSAGES:
                         stats.messages.append(lcp.dantzig_message(res[i], codes[i]))
             if large.any():
-                res, vres, work = K.solve_pgs(heap_state(), large, *data, lo, hi, x_n, x_t,
-                                              v_t_new, np.zeros((w.n, 3)), st.pgs_tol_mps,
-                                              st.pgs_max_sweeps, st.pgs_check, st.pgs_omega,
-                                              st.pgs_momentum, height)
+                res, vres, work = K.solve_pgs(heap_state(), large, geo.rows, problem, out,
+                                              np.zeros((w.n, 3)), pgs, height)
                 conv = vres[large] <= st.pgs_tol_mps
                 stats.record_batch(rows[large], work[large], res[large], conv, 'pgs')
                 stats.pgs_solves += int(large.sum())
@@ -1069,9 +1079,8 @@ class TimeStepper(StepperBase):
             if attempt == 2:
                 break
             if attempt == 0 and sliding.any():
-                redo = K.stop_within_step(heap_state(), small & ~failed, *geo.kernel_args, box,
-                                          slip, sliding, half_vel, half_om, mu_s, mu_d, x_n,
-                                          x_t, v_t_new, b_n, b_t, lo, hi, offset, remain)
+                redo = K.stop_within_step(heap_state(), small & ~failed, geo.rows, problem, out,
+                                          slip_state)
             else:
                 redo = np.zeros(len(lens), bool)
             # after the first answer on friction_rows' bounds, after the second on the
@@ -1082,12 +1091,9 @@ class TimeStepper(StepperBase):
                                             st.slip_tol_mps, remain)
             redo[isl[saturated]] = True
             if sliding.any() or attempt == 0:
-                _, a, b, normal, _, r_a, r_b = geo.kernel_args[:7]
                 redo |= K.breakaway_within_step(
-                    heap_state(), steady & small & ~failed, starts, a, b, normal, r_a, r_b, box,
-                    slip,
-                    half_vel, half_om, v_t_end, mu_s, mu_d, x_n, x_t, lo, hi, remain,
-                    attempt == 1)
+                    heap_state(), steady & small & ~failed, geo.rows,
+                    K.RowProblem(b_n, b_t, box, lo, hi), out, slip_state, attempt == 1)
             if not redo.any():
                 break
             small, large = small & redo, large & redo
