@@ -111,6 +111,15 @@ class PgsSettings(NamedTuple):
     momentum: bool      # conjugate gradient steps (Silcowitz, Niebe and Erleben)
 
 
+class RowJacobians(NamedTuple):
+    """The contact rows' Jacobian blocks (``_rows``): rows [N_0..N_{c-1}, T_0..T_{c-1}]."""
+
+    ja: np.ndarray      # (2c, 3): on body a, (d, r_a x d)
+    jb: np.ndarray      # (2c, 3): on body b, -(d, r_b x d)
+    ma: np.ndarray      # (2c, 3): ja times body a's inverse mass and inertia
+    mb: np.ndarray      # (2c, 3): jb times body b's
+
+
 @inner
 def _find(parent: np.ndarray, i: int) -> int:
     while parent[i] != i:
@@ -193,8 +202,8 @@ island_groups = for_python(island_groups_inline)
 
 @inner
 def _rows(ar, rows):
-    """Per-row Jacobian blocks of the contacts of ``rows`` (:class:`IslandRows`): rows
-    [N_0..N_{c-1}, T_0..T_{c-1}].
+    """Per-row Jacobian blocks of the contacts of ``rows`` (:class:`IslandRows`): a
+    :class:`RowJacobians`, rows [N_0..N_{c-1}, T_0..T_{c-1}].
 
     ``ja[i] = (d, r_a x d)`` acts on body a, ``jb[i] = -(d, r_b x d)`` on body b; ``ma`` /
     ``mb`` are the same blocks multiplied by the inverse mass (so ``dv = M^-1 J^T x``)."""
@@ -223,7 +232,7 @@ def _rows(ar, rows):
             mb[i, q] = inv_mass[ib] * jb[i, q]
         ma[i, 2] = inv_inertia[ia] * ja[i, 2]
         mb[i, 2] = inv_inertia[ib] * jb[i, 2]
-    return ja, jb, ma, mb
+    return RowJacobians(ja, jb, ma, mb)
 
 
 @inner(machine_inline=True)
@@ -277,9 +286,10 @@ def _row_add(i, k, a, b, ma, mb, dv, delta):
 
 
 @inner
-def _island_residual(lo_c, hi_c, a, b, ja, jb, dv, b_n, b_t, box, mu_lo, mu_hi, x_n, x_t,
-                     diag, c, w_t_out):
-    """Two measures of how far one island's impulses are from solving its LCP.
+def _island_residual(lo_c, hi_c, a, b, jac, dv, problem, out, diag):
+    """Two measures of how far one island's impulses (of ``out``, :class:`RowImpulses`) are
+    from solving its LCP (``problem``, :class:`RowProblem`; ``jac`` its
+    :class:`RowJacobians`).
 
     * ``lcp.residual`` of the assembled problem (scale-free; the assembled matrix is
       symmetric positive semi-definite, so ``max|A|`` is its largest diagonal entry);
@@ -288,8 +298,12 @@ def _island_residual(lo_c, hi_c, a, b, ja, jb, dv, b_n, b_t, box, mu_lo, mu_hi, 
       former it does not scale with the largest ``|b|`` of the island (speculative contacts
       far apart have b ~ gap / h ~ 1 m/s), so it bounds the velocity error of every contact.
 
-    Also writes the tangential w (new tangential velocity) of every contact to ``w_t_out``.
+    Also writes the tangential w (new tangential velocity) of every contact to ``out.w_t``.
     Returns (lcp residual, velocity residual)."""
+    ja, jb = jac.ja, jac.jb
+    b_n, b_t, box, mu_lo, mu_hi = problem
+    x_n, x_t, w_t_out = out
+    c = a.shape[0]
     amax = 0.0
     bmax = 0.0
     xmax = 0.0
@@ -618,11 +632,13 @@ _R_WIDTH = 32
 
 
 @inner
-def _pgs_records(ar, a, b, ja, jb, ma, mb, step, diag, b_n, b_t, mu_lo, mu_hi, inv_mass,
-                 inv_inertia):
+def _pgs_records(ar, rows, jac, step, diag, problem):
     """Everything a sweep reads about contact k in row k of one (c, 32) array, so that a sweep
     streams through memory once instead of gathering from a dozen arrays, and per contact
     whether its vertex / edge body is fixed (zero inverse mass and inertia)."""
+    a, b, inv_mass, inv_inertia = rows.a, rows.b, rows.inv_mass, rows.inv_inertia
+    ja, jb, ma, mb = jac
+    b_n, b_t, _, mu_lo, mu_hi = problem
     c = a.shape[0]
     R = empty_f2(ar, c, _R_WIDTH)
     fixed_a = empty_b(ar, c)
@@ -748,10 +764,14 @@ def _coupling(a, b, k, kj, ma, mb, gm, ja, jb, gj):
 
 
 @inner
-def _island_dense(ar, lo_c, hi_c, c, a, b, ja, jb, ma, mb, b_n, b_t, box, mu_lo, mu_hi):
+def _island_dense(ar, lo_c, hi_c, a, b, jac, problem):
     """The assembled problem of contacts lo_c..hi_c-1 (``dynamics.assemble``'s layout: the
-    normals, then the friction rows of contacts with ``box``): A, b, normal_of, mu_lo, mu_hi,
-    and for each row its contact and whether it is a friction row."""
+    normals, then the friction rows of contacts with ``box``; ``jac`` the contacts'
+    :class:`RowJacobians`, ``problem`` their :class:`RowProblem`): A, b, normal_of, mu_lo,
+    mu_hi, and for each row its contact and whether it is a friction row."""
+    ja, jb, ma, mb = jac
+    b_n, b_t, box, mu_lo, mu_hi = problem
+    c = a.shape[0]
     nc = hi_c - lo_c
     m = nc
     for k in range(lo_c, hi_c):
@@ -820,16 +840,16 @@ def solve_small_inline(ar, select, rows, problem, out, states_in, states_out):
     b_n, b_t, box, mu_lo, mu_hi = problem
     x_n, x_t, w_t = out
     n_isl = starts.shape[0] - 1
-    c = a.shape[0]
-    ja, jb, ma, mb = _rows(ar, rows)
+    jac = _rows(ar, rows)
+    ja, jb, ma, mb = jac
     res = zeros_f(ar, n_isl)
     work = full_i(ar, n_isl, 0)
     codes = full_i2(ar, n_isl, 2, 0)
     for isl in range(n_isl):
         if not select[isl]:
             continue
-        A, bb, nof, lo, hi, rc, rf = _island_dense(ar, starts[isl], starts[isl + 1], c, a, b,
-                                                   ja, jb, ma, mb, b_n, b_t, box, mu_lo, mu_hi)
+        A, bb, nof, lo, hi, rc, rf = _island_dense(ar, starts[isl], starts[isl + 1], a, b, jac,
+                                                   problem)
         m = bb.shape[0]
         known = True
         for k in range(starts[isl], starts[isl + 1]):
@@ -922,12 +942,13 @@ def stop_within_step_inline(ar, select, rows, problem, out, slip_state):
                 any_sliding = True
     if not any_sliding:
         return redo
-    ja, jb, ma, mb = _rows(ar, rows)
+    jac = _rows(ar, rows)
+    ja, jb, ma, mb = jac
     dv = zeros_f2(ar, inv_mass.shape[0], 3)
     _add_tangent_impulses(n_isl, select, starts, a, b, ma, mb, c, change, dv)
     for isl in range(n_isl):
         if select[isl]:
-            _keep_pressing(ar, starts[isl], starts[isl + 1], c, a, b, ja, jb, ma, mb, x_n, dv)
+            _keep_pressing(ar, starts[isl], starts[isl + 1], a, b, jac, x_n, dv)
     any_redo = False
     for isl in range(n_isl):
         if not select[isl]:
@@ -1089,12 +1110,13 @@ def _first_zero(u0, u1, f_half, f1):
 
 
 @inner
-def _keep_pressing(ar, lo_c, hi_c, c, a, b, ja, jb, ma, mb, x_n, dv):
+def _keep_pressing(ar, lo_c, hi_c, a, b, jac, x_n, dv):
     """Add to the velocity change ``dv`` the normal impulses of the contacts lo_c..hi_c-1 that
     press (``x_n > 0``) which keep their normal velocities as they were: the Schur complement
     of the normal rows. A box sliding on two corners does not turn under its friction: its
     normal forces shift between the corners instead, so its slip answers a change of friction
     with ``1/m``, not with ``1/m + (h/2)^2 / I`` (60 % more for a 20 x 10 mm box)."""
+    ja, jb, ma, mb = jac
     m = 0
     for k in range(lo_c, hi_c):
         if x_n[k] > 0.0:
@@ -1269,7 +1291,8 @@ def _solve_pgs_in_order(ar, select, rows, problem, out, dv, pgs):
     tol, max_sweeps, check, omega, momentum = pgs
     c = a.shape[0]
     n_isl = starts.shape[0] - 1
-    ja, jb, ma, mb = _rows(ar, rows)
+    jac = _rows(ar, rows)
+    ja, jb, ma, mb = jac
     diag = empty_f(ar, 2 * c)
     for i in range(2 * c):
         diag[i] = (ja[i, 0] * ma[i, 0] + ja[i, 1] * ma[i, 1] + ja[i, 2] * ma[i, 2]
@@ -1278,8 +1301,7 @@ def _solve_pgs_in_order(ar, select, rows, problem, out, dv, pgs):
     for i in range(2 * c):
         if diag[i] > 0.0:
             step[i] = omega / diag[i]
-    R, fixed_a, fixed_b = _pgs_records(ar, a, b, ja, jb, ma, mb, step, diag, b_n, b_t, mu_lo,
-                                       mu_hi, inv_mass, inv_inertia)
+    R, fixed_a, fixed_b = _pgs_records(ar, rows, jac, step, diag, problem)
     res = zeros_f(ar, n_isl)
     vres = zeros_f(ar, n_isl)
     work = full_i(ar, n_isl, 0)
@@ -1308,8 +1330,7 @@ def _solve_pgs_in_order(ar, select, rows, problem, out, dv, pgs):
             _row_add(k + c, k, a, b, ma, mb, dv, x_t[k])
         # sweep until a sweep changes no velocity by more than tol, then confirm with the
         # residual at the final point (the stopping test, recorded with lcp.residual)
-        r, rv = _island_residual(lo_c, hi_c, a, b, ja, jb, dv, b_n, b_t, box, mu_lo, mu_hi,
-                                 x_n, x_t, diag, c, w_t)
+        r, rv = _island_residual(lo_c, hi_c, a, b, jac, dv, problem, out, diag)
         s = 0
         rr = np.inf
         nb = 0
@@ -1330,8 +1351,7 @@ def _solve_pgs_in_order(ar, select, rows, problem, out, dv, pgs):
                                  g_n, g_t, n)
             s += n
             if change <= tol or s >= max_sweeps:
-                r, rv = _island_residual(lo_c, hi_c, a, b, ja, jb, dv, b_n, b_t, box, mu_lo,
-                                         mu_hi, x_n, x_t, diag, c, w_t)
+                r, rv = _island_residual(lo_c, hi_c, a, b, jac, dv, problem, out, diag)
                 if rv <= tol or s >= max_sweeps:
                     break
             if momentum:
