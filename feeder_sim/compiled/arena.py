@@ -219,18 +219,8 @@ def _heap_f(n):
 
 
 @inner
-def _heap_f2(n, m):
-    return np.empty((n, m))
-
-
-@inner
 def _heap_i(n):
     return np.empty(n, np.int64)
-
-
-@inner
-def _heap_i2(n, m):
-    return np.empty((n, m), np.int64)
 
 
 @inner
@@ -288,24 +278,10 @@ def empty_f(ar, n):
     """``np.empty(n)``."""
 
 
-@_two_forms(lambda ar, n, m: _heap_f2(n, m),
-            lambda ar, n, m: numba.carray(_address(_reserve(ar, 8 * n * m), numba.float64),
-                                          (n, m)))
-def empty_f2(ar, n, m):
-    """``np.empty((n, m))``."""
-
-
 @_two_forms(lambda ar, n: _heap_i(n),
             lambda ar, n: numba.carray(_address(_reserve(ar, 8 * n), numba.int64), (n,)))
 def empty_i(ar, n):
     """``np.empty(n, np.int64)``."""
-
-
-@_two_forms(lambda ar, n, m: _heap_i2(n, m),
-            lambda ar, n, m: numba.carray(_address(_reserve(ar, 8 * n * m), numba.int64),
-                                          (n, m)))
-def empty_i2(ar, n, m):
-    """``np.empty((n, m), np.int64)``."""
 
 
 @_two_forms(lambda ar, n: _heap_b(n),
@@ -322,31 +298,41 @@ def empty_like(ar, like, n):
 
 
 @_allocator
+def empty_f2(ar, n, m):
+    """``np.empty((n, m))``."""
+    return empty_f(ar, n * m).reshape((n, m))
+
+
+@_allocator
+def empty_i2(ar, n, m):
+    """``np.empty((n, m), np.int64)``."""
+    return empty_i(ar, n * m).reshape((n, m))
+
+
+@_allocator
+def _fill(x, value):
+    """``x[:] = value`` of a 1-d array; returns ``x``."""
+    for i in range(x.shape[0]):
+        x[i] = value
+    return x
+
+
+@_allocator
 def zeros_f(ar, n):
     """``np.zeros(n)``."""
-    x = empty_f(ar, n)
-    for i in range(n):
-        x[i] = 0.0
-    return x
+    return _fill(empty_f(ar, n), 0.0)
 
 
 @_allocator
 def zeros_f2(ar, n, m):
     """``np.zeros((n, m))``."""
-    x = empty_f2(ar, n, m)
-    for i in range(n):
-        for j in range(m):
-            x[i, j] = 0.0
-    return x
+    return _fill(empty_f(ar, n * m), 0.0).reshape((n, m))
 
 
 @_allocator
 def full_i(ar, n, value):
     """``np.full(n, value, np.int64)``."""
-    x = empty_i(ar, n)
-    for i in range(n):
-        x[i] = value
-    return x
+    return _fill(empty_i(ar, n), value)
 
 
 @_allocator
@@ -361,19 +347,21 @@ def arange_i(ar, n):
 @_allocator
 def full_b(ar, n, value):
     """``np.full(n, value, np.bool_)``."""
-    x = empty_b(ar, n)
-    for i in range(n):
-        x[i] = value
+    return _fill(empty_b(ar, n), value)
+
+
+@_allocator
+def _copy_into(x, src):
+    """``x[:] = src`` of 1-d arrays; returns ``x``."""
+    for i in range(src.shape[0]):
+        x[i] = src[i]
     return x
 
 
 @_allocator
 def copy_f(ar, src):
     """``src.copy()`` of a 1-d float array."""
-    x = empty_f(ar, src.shape[0])
-    for i in range(src.shape[0]):
-        x[i] = src[i]
-    return x
+    return _copy_into(empty_f(ar, src.shape[0]), src)
 
 
 @_allocator
@@ -390,20 +378,13 @@ def copy_f2(ar, src):
 @_allocator
 def copy_i(ar, src):
     """``src.copy()`` of a 1-d int array."""
-    x = empty_i(ar, src.shape[0])
-    for i in range(src.shape[0]):
-        x[i] = src[i]
-    return x
+    return _copy_into(empty_i(ar, src.shape[0]), src)
 
 
 @_allocator
 def full_i2(ar, n, m, value):
     """``np.full((n, m), value, np.int64)``."""
-    x = empty_i2(ar, n, m)
-    for i in range(n):
-        for j in range(m):
-            x[i, j] = value
-    return x
+    return _fill(empty_i(ar, n * m), value).reshape((n, m))
 
 
 @_allocator
