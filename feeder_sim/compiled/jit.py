@@ -293,15 +293,23 @@ def _unique_function_names() -> None:
     that name (``linkonce_odr``) and runs it for both: the heap forms of ``arena.empty_i``
     and ``arena.empty_b`` made one-byte arrays where eight-byte ones were written, and the
     process died of a corrupted heap. Counting from a random 48-bit start, two processes'
-    numbers meet with a chance of about n / 2**47 for n functions compiled. Builds on numba
-    internals (``FunctionIdentity._unique_ids``): AttributeError if they moved."""
+    numbers meet with a chance of about n / 2**47 for n functions compiled; a forked child
+    (``multiprocessing``'s default on Linux) draws a start of its own, or it would count on
+    from its parent's number as its siblings do. Builds on numba internals
+    (``FunctionIdentity._unique_ids``): AttributeError if they moved."""
     from numba.core import bytecode
 
     identity = bytecode.FunctionIdentity
     identity._unique_ids  # noqa: B018 (AttributeError if it moved)
-    if not getattr(identity, '_feeder_sim_ids', False):
+    if getattr(identity, '_feeder_sim_ids', False):
+        return
+
+    def draw() -> None:
         identity._unique_ids = itertools.count(secrets.randbits(48) + 1)
-        identity._feeder_sim_ids = True
+
+    draw()
+    identity._feeder_sim_ids = True
+    os.register_at_fork(after_in_child=draw)
 
 
 def _switch(name: str, off_means: str) -> bool:

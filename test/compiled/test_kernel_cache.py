@@ -460,13 +460,40 @@ def run_both(x):
 '''
 
 
-def test_functions_of_one_name_compiled_in_two_processes_keep_their_own_code(tmp_path):
+# each kernel compiled in a child forked from one parent (multiprocessing's default on Linux)
+FORKED = '''
+import json
+import multiprocessing
+from feeder_sim._probe import twins
+
+
+def call(name, queue):
+    queue.put(getattr(twins, name)(3.0))
+
+
+context = multiprocessing.get_context('fork')
+queue = context.Queue()
+values = []
+for name in ('run_first', 'run_second'):
+    child = context.Process(target=call, args=(name, queue))
+    child.start()
+    values.append(queue.get(timeout=60))
+    child.join()
+print(json.dumps(values))
+'''
+
+
+@pytest.mark.parametrize('how', ['processes', 'forked children'])
+def test_functions_of_one_name_compiled_in_two_processes_keep_their_own_code(tmp_path, how):
     tree = copy_package(tmp_path / 'tree')
     (tree / 'feeder_sim' / '_probe' / 'twins.py').write_text(TWINS)
     cache = tmp_path / 'cache'
     call = ('import json\nfrom feeder_sim._probe import twins\n'
             'print(json.dumps(twins.{}(3.0)))\n')
-    assert run(tree, cache, call.format('run_first'))[0] == 4.0
-    assert run(tree, cache, call.format('run_second'))[0] == 6.0
+    if how == 'processes':
+        assert run(tree, cache, call.format('run_first'))[0] == 4.0
+        assert run(tree, cache, call.format('run_second'))[0] == 6.0
+    else:
+        assert run(tree, cache, FORKED)[0] == [4.0, 6.0]
     # both inner kernels from the cache, linked into a new caller: 4 + 10 * 6
     assert run(tree, cache, call.format('run_both'))[0] == 64.0
